@@ -153,7 +153,7 @@ class _Reader:
 
 
 def _joint_limits() -> tuple[np.ndarray, np.ndarray]:
-    from damon_ros.robot import joint_limits
+    from damon_ros.limits import joint_limits
 
     limits = joint_limits("panda")
     return limits.lower, limits.upper
