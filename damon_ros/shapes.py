@@ -95,4 +95,5 @@ class Shape:
 
 def point(position: np.ndarray, name: str = "") -> Shape:
     """A point obstacle: a one-point convex set."""
-    return Shape("points", (), np.asarray(position, dtype=float), points=np.zeros((1, 3)), name=name)
+    position = np.asarray(position, dtype=float)
+    return Shape("points", (), position, points=np.zeros((1, 3)), name=name)
