@@ -1,0 +1,62 @@
+"""``damon-ros``: one entry point whose subcommands run each part of the pipeline.
+
+Subcommands are resolved lazily (module path + function name) so that ``--help`` and the
+light commands start without importing torch, pinocchio or rclpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, function taking argv and returning an exit code, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
+    "clearance": (
+        "damon_ros.clearance_report", "main",
+        "load scenarios and print the robot's exact clearance to each obstacle",
+    ),
+    "bench-robot": (
+        "damon_ros.bench_robot", "main",
+        "micro-benchmark of FK, IK and distance queries (median µs)",
+    ),
+}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="damon-ros",
+        description="DAMON latent-manifold motion planning for the Franka Panda.",
+        epilog="Run 'damon-ros <command> --help' for the options of one command.",
+    )
+    parser.add_argument("command", choices=sorted(SUBCOMMANDS), metavar="command",
+                        help="one of: " + ", ".join(sorted(SUBCOMMANDS)))
+    parser.add_argument("args", nargs=argparse.REMAINDER, help="arguments of the command")
+    return parser
+
+
+def _usage_table() -> str:
+    width = max(map(len, SUBCOMMANDS))
+    rows = [f"  {name:<{width}}  {SUBCOMMANDS[name][2]}" for name in sorted(SUBCOMMANDS)]
+    return "commands:\n" + "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = _parser()
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        print("\n" + _usage_table())
+        return 0
+    ns = parser.parse_args(argv)
+    module_name, function, _ = SUBCOMMANDS[ns.command]
+    run = getattr(importlib.import_module(module_name), function)
+    try:
+        return int(run(ns.args) or 0)
+    except KeyboardInterrupt:
+        print("damon-ros: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
