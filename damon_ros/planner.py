@@ -1,0 +1,375 @@
+"""The certified DAMON planner: latent-graph routing, proven free by exact geometry.
+
+``plan`` and ``replan`` route over the two-layer latent graph (module 2 of the paper) and
+certify every edge they return against *all* current obstacles with the conservative fast
+collision model at ≤ ``resolution`` rad steps (lazy evaluation: an edge is checked only
+when a shortest path uses it; an invalid edge is removed and the search repeated). The
+search starts in the subgraph of the obstacle node nearest the obstacle point closest to
+the arm (the paper's top-layer lookup) and widens to more subgraphs only when no safe
+route exists there. Nothing unchecked is ever returned: when no certified route exists the
+result says so and the caller holds position.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from damon_ros.graph import LatentGraph
+from damon_ros.limits import JointLimits
+from damon_ros.shapes import Shape
+
+
+@dataclass(frozen=True)
+class PoseGoal:
+    """A TCP (``panda_hand_tcp``) target in the base frame; quaternion ``[x, y, z, w]``."""
+
+    position: np.ndarray
+    orientation: np.ndarray
+    position_tolerance: float = 0.01
+    orientation_tolerance: float = 0.05
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Explicit planner settings (the planner node exposes each as a parameter)."""
+
+    margin: float = 0.02  # λ, m of clearance required on top of the conservative fast model
+    resolution: float = 0.02  # rad, max joint step between checked states on an edge
+    k_attach: int = 10  # graph vertices the start and the goal are each tied to
+    widen: tuple[int, ...] = (1, 8, 0)  # obstacle nodes searched per attempt (0 = all)
+    max_lazy_iterations: int = 300
+    shortcut: bool = True
+    velocity_scale: float = 0.9
+    acceleration_scale: float = 0.5
+    jerk_scale: float = 0.5
+    trajectory_dt: float = 0.01
+    ik_seeds: int = 16
+
+
+@dataclass
+class PlanResult:
+    """What a plan or re-plan produced. ``path`` rows are certified straight-line waypoints;
+    when ``success`` is False, ``reason`` says why and nothing should be executed."""
+
+    success: bool
+    reason: str
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    trajectory: object | None = None
+    goal_q: np.ndarray | None = None
+    subgraph: int = -1
+    searched_nodes: int = 0
+    lazy_iterations: int = 0
+    edges_checked: int = 0
+    edges_rejected: int = 0
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.path, axis=0), axis=1).sum())
+
+
+class _Query:
+    """One routing problem: start, goal, obstacles, and the edge-validity cache."""
+
+    START = -1
+    GOAL = -2
+
+    def __init__(self, planner: Planner, q_start, q_goal, obstacles, start_margin):
+        self.p = planner
+        self.q_start = q_start
+        self.q_goal = q_goal
+        self.obstacles = obstacles
+        self.start_margin = start_margin
+        self.valid: dict[tuple[int, int], bool] = {}
+        self.checked = 0
+        self.rejected = 0
+        self.iterations = 0
+
+    def config(self, v: int) -> np.ndarray:
+        if v == self.START:
+            return self.q_start
+        if v == self.GOAL:
+            return self.q_goal
+        return self.p.graph.q[v]
+
+    def edge_free(self, u: int, v: int) -> bool:
+        key = (u, v) if u < v else (v, u)
+        known = self.valid.get(key)
+        if known is None:
+            margin = self.start_margin if self.START in key else self.p.config.margin
+            known = self.p.segment_free(self.config(u), self.config(v), self.obstacles, margin)
+            self.valid[key] = known
+            self.checked += 1
+            self.rejected += not known
+        return known
+
+
+class Planner:
+    """Plans and re-plans Panda motions over a :class:`LatentGraph`.
+
+    ``robot`` is a fast (conservative) :class:`damon_ros.robot.Robot`; ``risk`` is an optional
+    callable ``(q, obstacles) -> p(collision)`` (the GMR) used by :meth:`path_threatened`.
+    """
+
+    def __init__(self, graph: LatentGraph, robot, limits: JointLimits,
+                 config: PlannerConfig | None = None, risk=None) -> None:
+        self.graph = graph
+        self.robot = robot
+        self.limits = limits
+        self.config = config or PlannerConfig()
+        self.risk = risk
+        self.goal_q: np.ndarray | None = None
+        self._safe_ids = np.flatnonzero(graph.safe)
+        self._tree = cKDTree(graph.q[self._safe_ids])
+
+    # ---- geometry -------------------------------------------------------------------
+    def segment_free(self, q0: np.ndarray, q1: np.ndarray, obstacles: Sequence[Shape],
+                     margin: float) -> bool:
+        """A straight joint-space segment is free of obstacles (with margin) and of self-
+        collision at every state no more than ``resolution`` rad apart."""
+        return bool(self.robot.segment_free(q0, q1, obstacles, margin=margin,
+                                            resolution=self.config.resolution))
+
+    def clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
+        if not obstacles:
+            return math.inf
+        return float(self.robot.clearance(q, obstacles).distance)
+
+    def _start_margin(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
+        """The margin demanded of the first segment: λ, or less when an obstacle has already
+        come closer than λ — the arm must be able to move away (still certified free)."""
+        clearance = self.clearance(q, obstacles)
+        return min(self.config.margin, max(0.0, 0.5 * clearance))
+
+    # ---- goals ----------------------------------------------------------------------
+    def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
+        """Joint goal for a pose (IK nearest ``q_near`` with clearance) or a joint vector.
+        Returns ``(q_goal, reason)``; ``q_goal`` is None when the goal is refused."""
+        if isinstance(goal, PoseGoal):
+            result = self.robot.ik(goal.position, goal.orientation, q_near=q_near,
+                                   obstacles=obstacles, min_clearance=self.config.margin,
+                                   n_seeds=self.config.ik_seeds)
+            if not result.success:
+                return None, f"goal pose refused: {result.reason}"
+            q_goal = np.asarray(result.q, float)
+        else:
+            q_goal = np.asarray(goal, float).reshape(-1)
+            if q_goal.shape != (7,) or not np.all(np.isfinite(q_goal)):
+                return None, "goal joints must be 7 finite values"
+            if not self.limits.within(q_goal):
+                return None, "goal joints are outside the joint limits"
+        if self.robot.self_collision(q_goal):
+            return None, "goal configuration is in self-collision"
+        if obstacles and self.clearance(q_goal, obstacles) <= self.config.margin:
+            return None, (f"goal configuration is within the {self.config.margin:.3f} m margin "
+                          "of an obstacle")
+        return q_goal, ""
+
+    # ---- planning -------------------------------------------------------------------
+    def plan(self, q_start: np.ndarray, goal, obstacles: Sequence[Shape] = ()) -> PlanResult:
+        """Plan from ``q_start`` to a :class:`PoseGoal` or joint goal, certified against all
+        ``obstacles``; remembers the goal for :meth:`replan`."""
+        t0 = time.perf_counter()
+        q_start = np.asarray(q_start, float)
+        problem = self._check_start(q_start)
+        if problem:
+            return PlanResult(False, problem)
+        obstacles = list(obstacles)
+        q_goal, reason = self.resolve_goal(goal, q_start, obstacles)
+        t_ik = time.perf_counter()
+        if q_goal is None:
+            self.goal_q = None
+            return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
+        self.goal_q = q_goal
+        result = self._route(q_start, q_goal, obstacles)
+        result.timing_ms["ik"] = 1e3 * (t_ik - t0)
+        result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return result
+
+    def replan(self, q_now: np.ndarray, obstacles: Sequence[Shape] = ()) -> PlanResult:
+        """Re-route from the current state toward the goal of the last successful plan."""
+        t0 = time.perf_counter()
+        if self.goal_q is None:
+            return PlanResult(False, "no goal to re-plan toward")
+        q_now = np.asarray(q_now, float)
+        problem = self._check_start(q_now)
+        if problem:
+            return PlanResult(False, problem)
+        result = self._route(q_now, self.goal_q, list(obstacles))
+        result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return result
+
+    def _check_start(self, q: np.ndarray) -> str:
+        if q.shape != (7,) or not np.all(np.isfinite(q)):
+            return "start state must be 7 finite joint positions"
+        if not self.limits.within(q, tolerance=1e-3):
+            return "start state is outside the joint limits"
+        return ""
+
+    def _route(self, q_start, q_goal, obstacles) -> PlanResult:
+        t0 = time.perf_counter()
+        start_margin = self._start_margin(q_start, obstacles) if obstacles else 0.0
+        query = _Query(self, q_start, q_goal, obstacles, start_margin)
+        order = self._node_order(q_start, obstacles)
+        path_ids, searched = None, 0
+        for width in self.config.widen:
+            searched = len(order) if width == 0 else min(width, len(order))
+            active = np.zeros(self.graph.n_vertices, bool)
+            for m in order[:searched]:
+                active[self.graph.members[m]] = True
+            active &= self.graph.safe
+            path_ids = self._lazy_astar(query, active)
+            if path_ids is not None or searched == len(order):
+                break
+        t_search = time.perf_counter()
+        result = PlanResult(False, "", goal_q=q_goal, subgraph=int(order[0]) if len(order) else -1,
+                            searched_nodes=searched, lazy_iterations=query.iterations)
+        if path_ids is None:
+            result.reason = (f"no certified route to the goal in the graph ({query.checked} edges "
+                             f"checked, {query.rejected} blocked); holding position")
+        else:
+            path = np.array([query.config(v) for v in path_ids])
+            if self.config.shortcut:
+                path = self._shortcut(path, obstacles, start_margin, query)
+            result.success, result.path = True, path
+            result.trajectory = self._time_parameterize(path)
+        t_end = time.perf_counter()
+        result.edges_checked, result.edges_rejected = query.checked, query.rejected
+        result.timing_ms.update(search=1e3 * (t_search - t0), shortcut_and_timing=1e3 * (
+            t_end - t_search))
+        return result
+
+    def _node_order(self, q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
+        """Obstacle nodes by distance from the obstacle point closest to the arm (GJK witness
+        point); with no obstacles, every node is equally relevant."""
+        n = len(self.graph.nodes)
+        if not obstacles:
+            return np.arange(n)
+        witness = self.robot.clearance(q, obstacles).obstacle_point
+        return self.graph.nearest_nodes(witness, k=n)
+
+    def _attach(self, q: np.ndarray, active: np.ndarray) -> list[tuple[int, float]]:
+        """The k nearest active vertices to a configuration, with joint-space distances."""
+        k = self.config.k_attach
+        n = len(self._safe_ids)
+        want = min(n, max(4 * k, int(4 * k * n / max(1, active.sum()))))
+        dist, idx = self._tree.query(q, k=want)
+        out = []
+        for d, i in zip(np.atleast_1d(dist), np.atleast_1d(idx), strict=True):
+            v = int(self._safe_ids[i])
+            if active[v]:
+                out.append((v, float(d)))
+                if len(out) == k:
+                    break
+        return out
+
+    def _lazy_astar(self, query: _Query, active: np.ndarray) -> list[int] | None:
+        """A* over active safe vertices plus start and goal; edges on the found path are
+        checked in order and a blocked one removed before searching again (lazy PRM)."""
+        g = self.graph
+        start_links = self._attach(query.q_start, active)
+        goal_links = dict(self._attach(query.q_goal, active))
+        direct = float(np.linalg.norm(query.q_goal - query.q_start))
+        heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
+        while query.iterations < self.config.max_lazy_iterations:
+            query.iterations += 1
+            path = self._astar(query, active, start_links, goal_links, direct, heuristic)
+            if path is None:
+                return None
+            if all(query.edge_free(u, v) for u, v in zip(path, path[1:], strict=False)):
+                return path
+        return None
+
+    def _astar(self, query, active, start_links, goal_links, direct, heuristic):
+        g = self.graph
+        start, goal = _Query.START, _Query.GOAL
+        cost = {start: 0.0}
+        parent: dict[int, int] = {}
+        closed = set()
+        heap = [(direct, start)]
+        valid = query.valid
+
+        def relax(u: int, v: int, w: float, h: float) -> None:
+            key = (u, v) if u < v else (v, u)
+            if valid.get(key) is False or v in closed:
+                return
+            c = cost[u] + w
+            if c < cost.get(v, math.inf):
+                cost[v] = c
+                parent[v] = u
+                heapq.heappush(heap, (c + h, v))
+
+        while heap:
+            _, u = heapq.heappop(heap)
+            if u in closed:
+                continue
+            if u == goal:
+                path = [goal]
+                while path[-1] != start:
+                    path.append(parent[path[-1]])
+                return path[::-1]
+            closed.add(u)
+            if u == start:
+                relax(u, goal, direct, 0.0)
+                for v, w in start_links:
+                    relax(u, v, w, heuristic[v])
+                continue
+            if u in goal_links:
+                relax(u, goal, goal_links[u], 0.0)
+            lo, hi = g.indptr[u], g.indptr[u + 1]
+            for v, w in zip(g.indices[lo:hi].tolist(), g.weights[lo:hi].tolist(), strict=True):
+                if active[v]:
+                    relax(u, v, w, heuristic[v])
+        return None
+
+    def _shortcut(self, path: np.ndarray, obstacles, start_margin: float,
+                  query: _Query) -> np.ndarray:
+        """Greedy shortcutting: from each kept waypoint jump to the farthest later waypoint
+        whose straight segment is certified free (fewer stops, shorter motion)."""
+        keep = [0]
+        i = 0
+        while i < len(path) - 1:
+            for j in range(len(path) - 1, i, -1):
+                if j == i + 1:
+                    break
+                margin = start_margin if i == 0 else self.config.margin
+                query.checked += 1
+                if self.segment_free(path[i], path[j], obstacles, margin):
+                    break
+            keep.append(j)
+            i = j
+        return path[keep]
+
+    def _time_parameterize(self, path: np.ndarray):
+        from damon_ros.trajectory import time_parameterize
+
+        c = self.config
+        return time_parameterize(path, self.limits, velocity_scale=c.velocity_scale,
+                                 acceleration_scale=c.acceleration_scale,
+                                 jerk_scale=c.jerk_scale, dt=c.trajectory_dt)
+
+    # ---- monitoring -----------------------------------------------------------------
+    def path_threatened(self, q_now: np.ndarray, remaining: np.ndarray,
+                        obstacles: Sequence[Shape]) -> tuple[bool, str]:
+        """Is the rest of the path (from ``q_now`` through ``remaining`` waypoints) no longer
+        certified free against the current obstacles? Returns (threatened, why)."""
+        if not obstacles:
+            return False, ""
+        points = np.vstack([np.asarray(q_now, float)[None], np.asarray(remaining, float)])
+        margin = self._start_margin(points[0], obstacles)
+        for a, b in zip(points, points[1:], strict=False):
+            if not self.segment_free(a, b, obstacles, margin):
+                return True, "an obstacle blocks the remaining path"
+            margin = self.config.margin
+        if self.risk is not None:
+            p = float(self.risk(points[0], obstacles))
+            if p > 0.5:
+                return True, f"p(collision) at the current state is {p:.2f}"
+        return False, ""
