@@ -12,6 +12,7 @@ at each step, plus motion time.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -87,7 +88,7 @@ class CollisionGMR:
                 data = {k: f[k] for k in ("version", "weights", "means", "covariances", "margin")}
         except KeyError as exc:
             raise ValueError(f"{path}: GMR file lacks array {exc}") from exc
-        except (OSError, ValueError, EOFError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable GMR npz ({exc})") from exc
         if int(data["version"]) != GMR_VERSION:
             raise ValueError(f"{path}: GMR version is not {GMR_VERSION}")

@@ -19,6 +19,7 @@ gives the paper's NetworkX dict-of-dicts view of any subgraph.
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,7 +126,7 @@ class LatentGraph:
                 arrays = {name: data[name] for name in (*_ARRAYS, "version")}
         except KeyError as exc:
             raise ValueError(f"{path}: graph file lacks array {exc}") from exc
-        except (OSError, ValueError, EOFError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable graph npz ({exc})") from exc
         if int(arrays.pop("version")) != GRAPH_VERSION:
             raise ValueError(f"{path}: graph version is not {GRAPH_VERSION}")
