@@ -271,7 +271,7 @@ class Robot:
         return T[:3, 3].copy(), pin.Quaternion(T[:3, :3]).coeffs().copy()
 
     def ik(self, position, orientation, q_near=None, obstacles: Sequence[Shape] = (),
-           min_clearance: float = 0.0, n_seeds: int = 16, rng: np.random.Generator | None = None,
+           min_clearance: float = 0.0, n_seeds: int = 32, rng: np.random.Generator | None = None,
            position_tolerance: float = 1e-3, orientation_tolerance: float = 1e-2,
            max_solutions: int = 4) -> IKResult:
         """Joint angles that put the TCP at a pose, within limits, out of self-collision and at
@@ -282,7 +282,8 @@ class Robot:
             return IKResult(False, None, "goal pose holds NaN or inf")
         norm = float(np.linalg.norm(quat))
         if abs(norm - 1.0) > 1e-3:
-            return IKResult(False, None, f"goal orientation is not a unit quaternion (norm {norm:.4f})")
+            return IKResult(False, None,
+                            f"goal orientation is not a unit quaternion (norm {norm:.4f})")
         reach = float(np.linalg.norm(position - SHOULDER))
         if reach > REACH:
             return IKResult(False, None, f"position is {reach:.3f} m from the shoulder, beyond the "
@@ -309,26 +310,34 @@ class Robot:
             if blocked:
                 return IKResult(False, None, f"all {blocked} IK solutions collide with obstacles "
                                 "or the robot itself")
-            return IKResult(False, None, f"no IK solution within {position_tolerance * 1e3:.1f} mm / "
-                            f"{orientation_tolerance:.3f} rad from {len(seeds)} seeds "
+            return IKResult(False, None, "no IK solution within "
+                            f"{position_tolerance * 1e3:.1f} mm / {orientation_tolerance:.3f} rad "
+                            f"from {len(seeds)} seeds "
                             f"(best {best_err[0] * 1e3:.1f} mm, {best_err[1]:.3f} rad)")
         _, q, err_p, err_o = min(found, key=lambda f: f[0])
         return IKResult(True, q, "", err_p, err_o)
 
-    def _solve(self, target: pin.SE3, seed: np.ndarray, iterations: int = 100,
+    def _solve(self, target: pin.SE3, seed: np.ndarray, iterations: int = 80,
                damping: float = 1e-6) -> tuple[np.ndarray, float, float]:
-        """Damped least squares on the SE(3) log error, clamped to the joint limits."""
+        """Damped least squares on the SE(3) log error, clamped to the joint limits; gives up
+        on a seed as soon as the error stops shrinking (a local minimum or a limit)."""
         q = seed.copy()
         lower, upper = self.limits.lower, self.limits.upper
+        eye = damping * np.eye(6)
+        best, stalled = math.inf, 0
         for _ in range(iterations):
             pin.forwardKinematics(self.model, self.data, q)
             current = pin.updateFramePlacement(self.model, self.data, self.tcp_id)
             err = pin.log6(current.actInv(target)).vector
-            if np.linalg.norm(err[:3]) < 1e-5 and np.linalg.norm(err[3:]) < 1e-5:
+            norm = float(err @ err)
+            if norm < 1e-12:
+                break
+            stalled = stalled + 1 if norm > 0.81 * best else 0
+            best = min(best, norm)
+            if stalled >= 8:
                 break
             J = pin.computeFrameJacobian(self.model, self.data, q, self.tcp_id, pin.LOCAL)
-            dq = J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), err)
-            q = np.clip(q + dq, lower, upper)
+            q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + eye, err), lower, upper)
         pin.forwardKinematics(self.model, self.data, q)
         current = pin.updateFramePlacement(self.model, self.data, self.tcp_id)
         err = pin.log6(current.actInv(target)).vector
