@@ -304,8 +304,8 @@ class Robot:
                 blocked += 1
                 continue
             found.append((float(np.linalg.norm(q - q_near)), q, err_p, err_o))
-            if len(found) >= max_solutions:
-                break
+            if len(found) >= max_solutions or (len(found) == 1 and seed is seeds[0]):
+                break  # the solution reached from q_near itself is the nearest one we want
         if not found:
             if blocked:
                 return IKResult(False, None, f"all {blocked} IK solutions collide with obstacles "
@@ -422,3 +422,11 @@ class Robot:
         if not obstacles:
             return True
         return bool(np.all(self.distances(Q, obstacles) > margin))
+
+    def segment_self_collision_free(self, q0, q1, resolution: float = 0.1) -> bool:
+        """No self-collision of the exact meshes along a straight segment, sampled at most
+        ``resolution`` rad apart (the SRDF's disabled pairs ignored)."""
+        q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
+        n = max(1, math.ceil(float(np.max(np.abs(q1 - q0))) / resolution))
+        return not any(self.self_collision(q0 + s * (q1 - q0))
+                       for s in np.linspace(0.0, 1.0, n + 1))
