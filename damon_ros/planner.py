@@ -40,7 +40,7 @@ class PoseGoal:
 class PlannerConfig:
     """Explicit planner settings (the planner node exposes each as a parameter)."""
 
-    margin: float = 0.02  # λ, m of clearance required on top of the conservative fast model
+    margin: float = 0.01  # λ, m of clearance required on top of the conservative fast model
     resolution: float = 0.02  # rad, max joint step between checked states on an edge
     k_attach: int = 10  # graph vertices the start and the goal are each tied to
     widen: tuple[int, ...] = (1, 8, 0)  # obstacle nodes searched per attempt (0 = all)
@@ -104,7 +104,10 @@ class _Query:
         known = self.valid.get(key)
         if known is None:
             margin = self.start_margin if self.START in key else self.p.config.margin
-            known = self.p.segment_free(self.config(u), self.config(v), self.obstacles, margin)
+            q0, q1 = self.config(u), self.config(v)
+            known = self.p.segment_free(q0, q1, self.obstacles, margin)
+            if known and key[0] < 0:  # not a graph edge: self-collision was not verified offline
+                known = self.p.robot.segment_self_collision_free(q0, q1)
             self.valid[key] = known
             self.checked += 1
             self.rejected += not known
@@ -341,7 +344,8 @@ class Planner:
                     break
                 margin = start_margin if i == 0 else self.config.margin
                 query.checked += 1
-                if self.segment_free(path[i], path[j], obstacles, margin):
+                if self.segment_free(path[i], path[j], obstacles, margin) and \
+                        self.robot.segment_self_collision_free(path[i], path[j]):
                     break
             keep.append(j)
             i = j
