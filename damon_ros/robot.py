@@ -28,6 +28,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
+from damon_ros import fast_collision
 from damon_ros.limits import JointLimits, joint_limits
 from damon_ros.shapes import Shape
 
@@ -184,6 +185,11 @@ class _SphereModel:
         self.pair_a = np.array([p[0] for p in pairs], int)
         self.pair_b = np.array([p[1] for p in pairs], int)
         self._by_joint = [np.flatnonzero(self.joints == j) for j in range(model.njoints)]
+        # the same model as contiguous arrays for the compiled kernels
+        self.kernel_args = (np.ascontiguousarray([r for r, _ in self.placements]),
+                            np.ascontiguousarray([p for _, p in self.placements]),
+                            self.joints.astype(np.int64), np.ascontiguousarray(self.centers),
+                            np.ascontiguousarray(self.radii))
 
     def world_centers(self, Q: np.ndarray) -> np.ndarray:
         """Sphere centres (N, S, 3) for configurations (N, 7); every Panda joint turns about
@@ -392,9 +398,8 @@ class Robot:
             return np.full(len(Q), math.inf)
         if self.collision == "mesh":
             return np.array([self.clearance(q, obstacles).distance for q in Q])
-        centers = self.spheres.world_centers(Q)
-        return np.min([(_signed_distance(centers, s) - self.spheres.radii).min(axis=1)
-                       for s in obstacles], axis=0)
+        return fast_collision.batch_distances(Q, *self.spheres.kernel_args,
+                                              *fast_collision.pack_obstacles(obstacles))
 
     def in_collision(self, q, obstacles: Sequence[Shape], margin: float = 0.0) -> bool:
         return bool(self.distances(self._check_q(q)[None], obstacles)[0] <= margin)
@@ -419,10 +424,13 @@ class Robot:
         ``resolution`` rad apart (max norm), keeps ``margin`` from every obstacle."""
         q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
         n = max(1, math.ceil(float(np.max(np.abs(q1 - q0))) / resolution))
-        Q = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)
         if not obstacles:
             return True
-        return bool(np.all(self.distances(Q, obstacles) > margin))
+        if self.collision == "mesh":
+            Q = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)
+            return bool(np.all(self.distances(Q, obstacles) > margin))
+        return bool(fast_collision.segment_clear(q0, q1, n, margin, *self.spheres.kernel_args,
+                                                 *fast_collision.pack_obstacles(obstacles)))
 
     def segment_self_collision_free(self, q0, q1, resolution: float = 0.1) -> bool:
         """No self-collision of the exact meshes along a straight segment, sampled at most
