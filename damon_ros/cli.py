@@ -16,6 +16,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "damon_ros.clearance_report", "main",
         "load scenarios and print the robot's exact clearance to each obstacle",
     ),
+    "collect": ("damon_ros.collect", "main", "collect labelled samples [q, obstacle point, flag]"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",

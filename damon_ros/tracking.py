@@ -362,38 +362,40 @@ def fit_sphere(points: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, flo
     geometric distance; the visible cap of a sphere seen from outside is close to a
     hemisphere, which constrains the centre well in all three directions. The 4x4 normal
     equations are solved directly: the points are centred, so they are well conditioned.
+    Arrays are kept 3xN (rows contiguous) because that is what makes the reductions fast.
     """
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     if len(p) < 4:
         raise ValueError(f"a sphere fit needs at least 4 points, got {len(p)}")
-    mean = p.mean(axis=0)
-    q = p - mean
-    A = np.empty((len(q), 4))
-    A[:, :3] = 2.0 * q
-    A[:, 3] = 1.0
-    sol = _solve_normal(A, np.einsum("ij,ij->i", q, q))
+    q = np.ascontiguousarray(p.T)
+    mean = q.mean(axis=1)
+    q -= mean[:, None]
+    A = np.empty((4, q.shape[1]))  # the transposed design matrix
+    A[:3] = 2.0 * q
+    A[3] = 1.0
+    sol = _solve_normal(A, (q * q).sum(axis=0))
     if sol is None:
         raise ValueError("a sphere fit needs points that are not coplanar")
     centre = sol[:3]
     radius = math.sqrt(max(sol[3] + centre @ centre, 1e-12))
     for _ in range(iterations):
-        diff = q - centre
-        dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", diff, diff)), 1e-12)
-        A[:, :3] = diff / dist[:, None]
+        diff = q - centre[:, None]
+        dist = np.maximum(np.sqrt((diff * diff).sum(axis=0)), 1e-12)
+        A[:3] = diff / dist
         step = _solve_normal(A, dist - radius)  # residual r_i = dist_i - radius
         if step is None:
             break
         centre, radius = centre + step[:3], radius + step[3]
-    diff = q - centre
-    dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    rms = float(np.sqrt(np.mean((dist - radius) ** 2)))
+    diff = q - centre[:, None]
+    residual = np.sqrt((diff * diff).sum(axis=0)) - radius
+    rms = math.sqrt(float(residual @ residual) / len(residual))
     return centre + mean, float(abs(radius)), rms
 
 
-def _solve_normal(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-    """Least squares ``A x ~ b`` via the normal equations; None when rank-deficient."""
+def _solve_normal(At: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """Least squares ``A x ~ b`` (given ``A`` transposed) by the normal equations."""
     try:
-        return np.linalg.solve(A.T @ A, A.T @ b)
+        return np.linalg.solve(At @ At.T, At @ b)
     except np.linalg.LinAlgError:
         return None
 
@@ -426,6 +428,11 @@ class Estimate(NamedTuple):
     round: bool
 
 
+FIT_POINTS = 300
+"""The sphere fit uses at most about this many points: a cap of a few hundred pixels fixes the
+centre far below a millimetre, and big blobs (near boxes) would otherwise dominate the cost."""
+
+
 def _is_round(config: TrackerConfig, radius: float, rms: float, width: float,
               centre_depth: float, surface_depth: float) -> bool:
     """A sphere fit describes the blob: small residual, radius ~ half width, centre behind."""
@@ -436,14 +443,12 @@ def _is_round(config: TrackerConfig, radius: float, rms: float, width: float,
     )
 
 
-FIT_POINTS = 300
-"""The sphere fit uses at most about this many points: a cap of a few hundred pixels fixes the
-centre far below a millimetre, and big blobs (near boxes) would otherwise dominate the cost."""
-
-
 def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: float,
                config: TrackerConfig) -> tuple[np.ndarray, float] | None:
-    """Centre and radius (reaching every point) of the blob's sphere, or None if not round."""
+    """Centre and radius (reaching every point) of the blob's sphere, or None if not round.
+
+    ``points`` are N x 3 in the optical frame, ``local`` the same as 3 x N view coordinates.
+    """
     if len(points) < 4:
         return None
     stride = max(1, len(points) // FIT_POINTS)
@@ -452,11 +457,15 @@ def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: 
     except ValueError:
         return None
     if not _is_round(config, radius, rms, width, float(centre @ basis[:, 2]),
-                     float(local[:, 2].mean())):
+                     float(local[2].mean())):
         return None
-    diff = points - centre
-    reach = math.sqrt(float(np.max(np.einsum("ij,ij->i", diff, diff))))
-    return centre, max(radius, reach)
+    return centre, max(radius, _reach(local, basis.T @ centre))
+
+
+def _reach(local: np.ndarray, centre: np.ndarray) -> float:
+    """Largest distance from ``centre`` to the 3 x N points ``local``."""
+    diff = local - centre[:, None]
+    return math.sqrt(float(np.max((diff * diff).sum(axis=0))))
 
 
 def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
@@ -468,9 +477,11 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
     depth of a compact obstacle is at most that), and the bound covers both ends: a sphere
     about the middle of that cloud, or the box of it in the view-aligned frame.
     """
-    basis = view_basis(camera, points.mean(axis=0))
-    local = points @ basis  # [side, down, view] coordinates
-    width = float(np.max(local[:, :2].max(axis=0) - local[:, :2].min(axis=0)))
+    points_t = points.T
+    basis = view_basis(camera, points_t.mean(axis=1))
+    local = basis.T @ points_t  # 3 x N [side, down, view] coordinates
+    low, high = local.min(axis=1), local.max(axis=1)
+    width = float(max(high[0] - low[0], high[1] - low[1]))
     inflate = config.inflation_m
     R, t = camera.rotation, camera.position
     fit = _round_fit(points, local, basis, width, config)
@@ -479,14 +490,14 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
         if config.shape == "box":
             return Estimate(Shape("box", (2 * radius,) * 3, centre, name=name), True)
         return Estimate(Shape("sphere", (radius,), centre, name=name), True)
-    ranges = np.sqrt(np.einsum("ij,ij->i", points, points))[:, None]
-    extended = np.vstack([local, (points * (1.0 + width / ranges)) @ basis])
-    low, high = extended.min(axis=0), extended.max(axis=0)
+    ranges = np.sqrt((points_t * points_t).sum(axis=0))
+    far = local * (1.0 + width / ranges)  # each point pushed back along its ray by width
+    low = np.minimum(low, far.min(axis=1))
+    high = np.maximum(high, far.max(axis=1))
     mid = 0.5 * (low + high)
     centre = R @ (basis @ mid) + t
     if config.shape == "sphere":
-        diff = extended - mid
-        radius = math.sqrt(float(np.max(np.einsum("ij,ij->i", diff, diff)))) + inflate
+        radius = max(_reach(local, mid), _reach(far, mid)) + inflate
         return Estimate(Shape("sphere", (radius,), centre, name=name), False)
     orientation = Rotation.from_matrix(R @ basis).as_quat()
     size = tuple(high - low + 2.0 * inflate)
