@@ -16,7 +16,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "damon_ros.clearance_report", "main",
         "load scenarios and print the robot's exact clearance to each obstacle",
     ),
-    "collect": ("damon_ros.collect", "main", "collect labelled samples [q, obstacle point, flag]"),
+    "collect": ("damon_ros.collect", "main",
+                "collect labelled samples [q, obstacle point, flag] (module 1 data)"),
+    "train": ("damon_ros.vae", "main", "train the VAE latent manifold on collected samples"),
+    "build-graph": ("damon_ros.pipeline", "main",
+                    "build the two-layer latent graph and fit the GMR into a model directory"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",

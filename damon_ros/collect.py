@@ -3,7 +3,7 @@
 Obstacle nodes (the graph's top layer) are a regular grid over the Panda's reachable
 workspace: points ``spacing`` apart inside the sphere of radius ``REACH + 0.05`` m about the
 shoulder, above the table (z ≥ 0) and outside the base column (0.15 m around the z axis
-below 0.45 m). With the default 0.15 m spacing this is a few hundred nodes.
+below 0.45 m). With the default 0.25 m spacing this is 301 nodes.
 
 Each sample pairs an obstacle node (a point obstacle: a sphere of ``radius``) with a joint
 configuration drawn uniformly within the limits; a share of samples (``near_share``) is
@@ -35,7 +35,7 @@ COLUMNS = ("q", "point", "collision", "near", "distance", "node", "self_collisio
 DATASET_VERSION = 1
 
 
-def workspace_nodes(spacing: float = 0.15) -> np.ndarray:
+def workspace_nodes(spacing: float = 0.25) -> np.ndarray:
     """Grid points covering the reachable workspace (see module docstring)."""
     if spacing <= 0.02:
         raise ValueError(f"node spacing must be > 0.02 m, got {spacing}")
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
     parser.add_argument("--chunk-size", type=int, default=10000)
-    parser.add_argument("--spacing", type=float, default=0.15, help="obstacle-node grid (m)")
+    parser.add_argument("--spacing", type=float, default=0.25, help="obstacle-node grid (m)")
     parser.add_argument("--radius", type=float, default=0.03, help="point-obstacle radius (m)")
     parser.add_argument("--margin", type=float, default=0.02, help="λ for the near flag (m)")
     parser.add_argument("--near-share", type=float, default=0.3)
