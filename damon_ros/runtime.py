@@ -1,0 +1,176 @@
+"""DAMON's runtime loop, free of ROS: plan, watch the path, re-route or hold, resume.
+
+The planner node and the closed-loop benchmark both drive this class, so the decisions a
+user sees on the robot are exactly the ones the benchmark scores. Every obstacle update
+(and a fixed-rate tick) re-certifies the rest of the path against all obstacles, each
+swept over a short prediction horizon along its estimated velocity; when the path is no
+longer certified the loop re-routes from the current state, and when no certified route
+exists it holds the arm and retries until one appears.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from damon_ros.planner import PlanResult, Planner
+from damon_ros.shapes import Shape
+
+
+def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
+    """A shape that contains ``shape`` over the next ``horizon`` seconds of straight motion
+    at ``velocity``: a sphere grows into the sphere around its swept capsule; other shapes
+    become the bounding sphere of their swept volume (conservative)."""
+    velocity = np.asarray(velocity, float)
+    travel = float(np.linalg.norm(velocity)) * horizon
+    if travel < 1e-4:
+        return shape
+    center = shape.position + 0.5 * horizon * velocity
+    radius = shape.bounding_radius() + 0.5 * travel
+    return Shape("sphere", (radius,), center, name=shape.name)
+
+
+@dataclass
+class Event:
+    """What the caller must do now. ``kind``: ``trajectory`` (send ``result.trajectory``),
+    ``hold`` (stop the arm where it is), ``reached`` or ``refused`` (goal refused)."""
+
+    kind: str
+    reason: str = ""
+    result: PlanResult | None = None
+    latency_ms: float = 0.0
+
+
+@dataclass
+class RuntimeConfig:
+    prediction_horizon_s: float = 0.3
+    goal_tolerance_rad: float = 0.01
+    retry_period_s: float = 0.1  # how often a holding arm looks for a route again
+    perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
+
+
+@dataclass
+class RuntimeStats:
+    plans: int = 0
+    replans: int = 0
+    holds: int = 0
+    replan_latency_ms: list[float] = field(default_factory=list)
+    plan_latency_ms: list[float] = field(default_factory=list)
+
+
+class ReactivePlanner:
+    """State machine: ``idle`` → ``executing`` ⇄ ``holding`` → ``reached``."""
+
+    def __init__(self, planner: Planner, config: RuntimeConfig | None = None,
+                 risk=None) -> None:
+        self.planner = planner
+        self.config = config or RuntimeConfig()
+        self.risk = risk  # optional (q, obstacles) -> p(collision), reported only
+        self.state = "idle"
+        self.path = np.zeros((0, 7))
+        self.segment = 0
+        self.last_retry = -math.inf
+        self.last_probability = 0.0
+        self.stats = RuntimeStats()
+
+    def obstacles_for_check(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> list[Shape]:
+        h = self.config.prediction_horizon_s
+        return [swept(s, v, h) for s, v in obstacles]
+
+    def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]]
+                 ) -> Event:
+        """Plan to a new goal (replacing any current one)."""
+        t0 = time.perf_counter()
+        result = self.planner.plan(q_now, goal, self.obstacles_for_check(obstacles))
+        latency = 1e3 * (time.perf_counter() - t0)
+        self.stats.plans += 1
+        self.stats.plan_latency_ms.append(latency)
+        if not result.success:
+            if self.planner.goal_q is None:  # refused: IK, limits, goal in collision
+                self.state = "idle"
+                return Event("refused", result.reason, result, latency)
+            return self._hold(result.reason, result, latency)
+        return self._execute(result, latency)
+
+    def stop(self, reason: str) -> Event:
+        self.planner.goal_q = None
+        self.state = "idle"
+        self.path = np.zeros((0, 7))
+        return Event("hold", reason)
+
+    def update(self, t: float, q_now: np.ndarray,
+               obstacles: Sequence[tuple[Shape, np.ndarray]],
+               perception_age_s: float = 0.0) -> Event | None:
+        """Called on every obstacle update and at a fixed rate; returns an event or None."""
+        if self.state in ("idle", "reached"):
+            return None
+        q_now = np.asarray(q_now, float)
+        timeout = self.config.perception_timeout_s
+        if timeout > 0 and perception_age_s > timeout and self.state == "executing":
+            return self._hold(f"obstacle data is {perception_age_s:.2f} s old "
+                              f"(limit {timeout:.2f} s)")
+        shapes = self.obstacles_for_check(obstacles)
+        if self.risk is not None and shapes:
+            self.last_probability = float(self.risk(q_now, shapes))
+        if self.state == "holding":
+            if t - self.last_retry < self.config.retry_period_s:
+                return None
+            if timeout > 0 and perception_age_s > timeout:
+                return None
+            self.last_retry = t
+            return self._reroute(q_now, shapes, "route found again; resuming")
+        if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
+            self.state = "reached"
+            return Event("reached", "goal reached")
+        self._advance(q_now)
+        threatened, why = self.planner.path_threatened(q_now, self.path[self.segment + 1:],
+                                                       shapes)
+        if not threatened:
+            return None
+        return self._reroute(q_now, shapes, why)
+
+    def remaining_path(self) -> np.ndarray:
+        return self.path[self.segment + 1:]
+
+    def _reroute(self, q_now: np.ndarray, shapes: list[Shape], why: str) -> Event:
+        t0 = time.perf_counter()
+        result = self.planner.replan(q_now, shapes)
+        latency = 1e3 * (time.perf_counter() - t0)
+        if not result.success:
+            if self.state == "holding":
+                return None
+            return self._hold(f"{why}; {result.reason}", result, latency)
+        self.stats.replans += 1
+        self.stats.replan_latency_ms.append(latency)
+        event = self._execute(result, latency)
+        event.reason = why
+        return event
+
+    def _execute(self, result: PlanResult, latency: float) -> Event:
+        self.state = "executing"
+        self.path = result.path
+        self.segment = 0
+        return Event("trajectory", "", result, latency)
+
+    def _hold(self, reason: str, result: PlanResult | None = None, latency: float = 0.0) -> Event:
+        self.state = "holding"
+        self.stats.holds += 1
+        self.last_retry = -math.inf
+        return Event("hold", reason, result, latency)
+
+    def _advance(self, q_now: np.ndarray) -> None:
+        """Index of the path segment the arm is on: the nearest segment at or after the
+        current one (the arm only moves forward along a trajectory)."""
+        best, best_d = self.segment, math.inf
+        for i in range(self.segment, len(self.path) - 1):
+            a, b = self.path[i], self.path[i + 1]
+            ab = b - a
+            s = float(np.clip((q_now - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0))
+            d = float(np.linalg.norm(a + s * ab - q_now))
+            if d < best_d - 1e-9:
+                best, best_d = i, d
+        self.segment = best
