@@ -1,202 +1,558 @@
-"""DAMON data collection: [q (7), obstacle point (3), collision flag] with exact labels.
+"""DAMON data collection: joint configurations next to point obstacles, labelled by exact
+geometry.
 
-Obstacle nodes (the graph's top layer) are a regular grid over the Panda's reachable
-workspace: points ``spacing`` apart inside the sphere of radius ``REACH + 0.05`` m about the
-shoulder, above the table (z ≥ 0) and outside the base column (0.15 m around the z axis
-below 0.45 m). With the default 0.25 m spacing this is 301 nodes.
+Each sample is a joint configuration ``q`` (7), the position of a point obstacle (3) and
+whether the robot touches it, plus what the later modules need: the exact minimum distance
+``d`` between the robot's collision meshes and the obstacle (the GMR's target), a second
+flag ``near = d <= margin`` (the paper's λ) and the index of the obstacle node.
 
-Each sample pairs an obstacle node (a point obstacle: a sphere of ``radius``) with a joint
-configuration drawn uniformly within the limits; a share of samples (``near_share``) is
-drawn near contact instead — the node is the one nearest a random point of the arm's
-surface — so both labels are well represented. Labels come from the exact collision meshes:
-``collision = d ≤ 0`` and ``near = d ≤ margin`` (λ), plus mesh self-collision.
+Choices (where the paper says only "random arm motion, with enough collision samples"):
 
-Output is chunked and resumable: ``chunk_NNNNN.npz`` (no pickle) plus ``dataset.json``;
-every chunk is seeded from (seed, chunk index), so the data do not depend on the number
-of worker processes.
+- **Obstacle nodes** (the graph's top layer) are a regular grid: x, y at multiples of the
+  spacing, z at the cell centres ``(k + ½)·spacing`` above the table plane, so every point
+  above the table is within half a cell of a node; clipped to a ball of radius ``reach``
+  about the shoulder (0.855 m arm reach + 0.1 m of hand, default 0.955 m) and with the
+  nodes the robot itself always occupies removed (the base column and the shoulder
+  housing: a node colliding in every one of 32 random configurations). With 0.15 m this
+  gives 813 nodes. The point obstacle is a sphere of radius ``radius`` (default 3 cm)
+  centred on its node; the obstacle point stored is the node itself, so that a sample's
+  distance is the distance the graph assigns to that node.
+- **Configurations** are valid states of a table-mounted arm: uniform within the joint
+  limits, without self-collision (exact meshes), with every link frame and the TCP above
+  the table plane. A share ``near_contact_share`` (default ½) is *contact-seeking*: joints
+  2–7 uniform, then joint 1 — a pure rotation of the whole arm about the base z axis — is
+  solved in closed form so that a chosen point of the arm's skeleton lies a chosen distance
+  from the node. Uniform sampling alone labels only ~2 % of samples colliding; this puts
+  about half of the contact-seeking ones in contact and most of the rest within the margin.
+- **Labels** come only from :meth:`Robot.clearance` on the exact meshes; the skeleton is
+  only an aim.
+- **Determinism**: chunk ``k`` draws from ``SeedSequence(seed, spawn_key=(k,))``, so the
+  data are a function of (seed, chunk size, parameters) whatever the number of workers,
+  and a longer run with the same seed extends a shorter one.
+- **Output**: ``out_dir/chunk_00000.npz`` … (``np.savez``, no object arrays) written
+  atomically, and ``out_dir/dataset.json`` (columns, parameters, nodes, counts, versions,
+  timing, each chunk's SHA-256). Chunks already present with matching parameters are kept.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
-import multiprocessing as mp
+import math
+import multiprocessing
 import os
+import platform
 import sys
 import time
+from dataclasses import asdict, dataclass
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
-SHOULDER = np.array([0.0, 0.0, 0.333])  # joint 2 of the Panda
-REACH = 1.07  # m from the shoulder to the fully stretched TCP (0.855 arm + hand and fingers)
-ARM_FRAMES = tuple(f"panda_link{i}" for i in range(2, 8)) + ("panda_hand", "panda_hand_tcp")
-COLUMNS = ("q", "point", "collision", "near", "distance", "node", "self_collision")
+DATASET_FORMAT = "damon_ros-dataset"
 DATASET_VERSION = 1
+SIDECAR = "dataset.json"
+COLUMNS = (
+    ("q", 7, "float64", "joint angles panda_joint1..7 (rad)"),
+    ("point", 3, "float64", "point obstacle = obstacle node position, base frame (m)"),
+    ("collision", 1, "bool", "exact mesh distance d <= 0"),
+    ("near", 1, "bool", "exact mesh distance d <= margin"),
+    ("distance", 1, "float64", "exact signed robot-obstacle distance (m), < 0 = penetration"),
+    ("node", 1, "int32", "index of the obstacle node in 'nodes'"),
+    ("source", 1, "int8", "0 = uniform configuration, 1 = contact-seeking configuration"),
+)
+SHOULDER = np.array([0.0, 0.0, 0.333])
+ARM_REACH = 0.855
+HAND_LENGTH = 0.1
+SKELETON_STEP = 0.03  # m between aim points along the link-frame polyline
+LINK_RADIUS = 0.06  # rough radius of the Panda's links about their frame axes (aim only)
+AIM_SPREAD = 0.12  # contact-seeking aims at centre distances in LINK_RADIUS + radius ± this
+AIM_PATIENCE = 20  # contact-seeking misses before a node gets the closest approach
+MAX_TRIES = 200  # configurations tried for one sample before giving up (never reached)
+OCCUPIED_PROBES = 32  # random configurations that decide a node is always occupied
 
 
-def workspace_nodes(spacing: float = 0.25) -> np.ndarray:
-    """Grid points covering the reachable workspace (see module docstring)."""
-    if spacing <= 0.02:
-        raise ValueError(f"node spacing must be > 0.02 m, got {spacing}")
-    axis = np.arange(-1.2, 1.2 + 1e-9, spacing)
-    grid = np.stack(np.meshgrid(axis, axis, np.arange(0.0, 1.5, spacing), indexing="ij"),
-                    axis=-1).reshape(-1, 3)
-    inside = np.linalg.norm(grid - SHOULDER, axis=1) <= REACH + 0.05
-    column = (np.hypot(grid[:, 0], grid[:, 1]) < 0.15) & (grid[:, 2] < 0.45)
-    return grid[inside & ~column]
+class CollectError(ValueError):
+    """Bad collection parameters or an output directory that does not match them."""
 
 
-_WORKER: dict = {}
+@dataclass(frozen=True)
+class CollectConfig:
+    """Every parameter that changes the data (the sample count only decides how many chunks)."""
+
+    seed: int = 0
+    chunk_size: int = 5000
+    spacing: float = 0.15
+    reach: float = ARM_REACH + HAND_LENGTH
+    radius: float = 0.03
+    margin: float = 0.05
+    near_contact_share: float = 0.5
+    floor: float = 0.0
+
+    def __post_init__(self) -> None:
+        checks = {
+            "seed": isinstance(self.seed, int) and self.seed >= 0,
+            "chunk_size": isinstance(self.chunk_size, int) and self.chunk_size >= 1,
+            "spacing": 0.02 <= self.spacing <= 1.0,
+            "reach": 0.2 <= self.reach <= 2.0,
+            "radius": 0.0 < self.radius <= 0.5,
+            "margin": 0.0 <= self.margin <= 1.0,
+            "near_contact_share": 0.0 <= self.near_contact_share <= 1.0,
+            "floor": math.isfinite(self.floor) and -1.0 <= self.floor <= SHOULDER[2],
+        }
+        bad = [f"{k}={getattr(self, k)!r}" for k, ok in checks.items() if not ok]
+        if bad:
+            raise CollectError("invalid collection parameters: " + ", ".join(bad))
+
+    def fingerprint(self) -> str:
+        """Short hash of the parameters, stored in every chunk so a resumed run never mixes
+        chunks made with different parameters."""
+        text = json.dumps(asdict(self), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _robot():
-    """One exact-mesh robot model per worker process (coal objects are not shared)."""
-    if not _WORKER:
-        from damon_ros.robot import Robot
+# ---- obstacle nodes -------------------------------------------------------------------
+def workspace_nodes(spacing: float = 0.15, reach: float = ARM_REACH + HAND_LENGTH,
+                    floor: float = 0.0, robot=None) -> np.ndarray:
+    """Obstacle nodes (M, 3): grid points within ``reach`` of the shoulder, above ``floor``,
+    excluding those the robot's base and shoulder always occupy (see the module docstring).
 
-        _WORKER["mesh"] = Robot("mesh")
-    return _WORKER["mesh"]
+    ``robot`` is a mesh-model :class:`~damon_ros.robot.Robot`, built here when not given."""
+    CollectConfig(spacing=spacing, reach=reach, floor=floor)  # validates
+    n_xy = int(math.floor(reach / spacing))
+    axis = spacing * np.arange(-n_xy, n_xy + 1)
+    z = floor + spacing * (np.arange(int(math.ceil((SHOULDER[2] + reach - floor) / spacing)))
+                           + 0.5)
+    grid = np.stack(np.meshgrid(axis, axis, z, indexing="ij"), axis=-1).reshape(-1, 3)
+    grid = grid[np.linalg.norm(grid - SHOULDER, axis=1) <= reach]
+    return grid[~_always_occupied(grid, robot)]
 
 
-def collect_chunk(index: int, size: int, seed: int, nodes: np.ndarray, radius: float,
-                  margin: float, near_share: float) -> dict[str, np.ndarray]:
-    """One chunk of labelled samples, deterministic from (seed, index)."""
-    from scipy.spatial import cKDTree
-
+def _always_occupied(points: np.ndarray, robot=None) -> np.ndarray:
+    """True for points where a 1 cm sphere touches the robot in every probe configuration:
+    inside the base or the shoulder housing, where no obstacle can be and no motion helps.
+    Only points near the base axis can qualify, so only those are probed."""
+    from damon_ros.robot import Robot
     from damon_ros.shapes import Shape
 
-    mesh = _robot()
-    tree = cKDTree(nodes)
-    rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
-    lower, upper = mesh.limits.lower, mesh.limits.upper
-    q = rng.uniform(lower, upper, (size, 7))
-    node = rng.integers(len(nodes), size=size)
-    near = rng.random(size) < near_share
-    for i in np.flatnonzero(near):
-        frame = ARM_FRAMES[rng.integers(len(ARM_FRAMES))]
-        direction = rng.normal(size=3)
-        direction *= rng.uniform(0.03, 0.2) / np.linalg.norm(direction)
-        node[i] = tree.query(mesh.fk(q[i], frame)[:3, 3] + direction)[1]
-    distance = np.empty(size)
-    self_collision = np.empty(size, bool)
-    for i in range(size):
-        distance[i] = mesh.clearance(q[i], [Shape("sphere", (radius,), nodes[node[i]])]).distance
-        self_collision[i] = mesh.self_collision(q[i])
-    return {
-        "q": q.astype(np.float32), "point": nodes[node].astype(np.float32),
-        "collision": distance <= 0.0, "near": distance <= margin,
-        "distance": distance.astype(np.float32), "node": node.astype(np.int32),
-        "self_collision": self_collision,
-    }
+    robot = robot if robot is not None else Robot("mesh")
+    rng = np.random.default_rng(0)
+    probes = rng.uniform(robot.limits.lower, robot.limits.upper, (OCCUPIED_PROBES, 7))
+    occupied = np.zeros(len(points), bool)
+    for i in np.flatnonzero(np.hypot(points[:, 0], points[:, 1]) < 0.3):
+        obstacle = [Shape("sphere", (0.01,), points[i])]
+        occupied[i] = all(robot.clearance(q, obstacle).distance <= 0.0 for q in probes)
+    return occupied
 
 
-def _write_chunk(args) -> str:
-    out_dir, index, size, seed, nodes, radius, margin, near_share = args
-    path = Path(out_dir) / f"chunk_{index:05d}.npz"
-    data = collect_chunk(index, size, seed, nodes, radius, margin, near_share)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **data)
-    os.replace(tmp, path)  # a chunk is either complete or absent: safe to resume
-    return str(path)
+# ---- sampling (inside a worker) -------------------------------------------------------
+class Sampler:
+    """Draws labelled samples for one chunk at a time. Holds the robot model, so it is built
+    inside each worker process (pinocchio/coal objects are never shared across processes)."""
+
+    def __init__(self, config: CollectConfig, nodes: np.ndarray) -> None:
+        from damon_ros.robot import Robot
+        from damon_ros.shapes import Shape
+
+        self.config = config
+        self.robot = Robot("mesh")
+        self.lower = np.asarray(self.robot.limits.lower, float)
+        self.upper = np.asarray(self.robot.limits.upper, float)
+        self.nodes = np.asarray(nodes, float)
+        self.obstacles = [Shape("sphere", (config.radius,), p) for p in self.nodes]
+        self.node_rho = np.hypot(self.nodes[:, 0], self.nodes[:, 1])
+        self.node_phi = np.arctan2(self.nodes[:, 1], self.nodes[:, 0])
+        self.rejected = {"self_collision": 0, "below_floor": 0, "unreachable_aim": 0}
+
+    def chunk(self, index: int, size: int) -> dict[str, np.ndarray]:
+        """The ``size`` samples of chunk ``index``: a pure function of (config, index)."""
+        rng = np.random.default_rng(np.random.SeedSequence(self.config.seed,
+                                                           spawn_key=(index,)))
+        node = rng.integers(0, len(self.nodes), size).astype(np.int32)
+        seek = rng.random(size) < self.config.near_contact_share
+        q = np.empty((size, 7))
+        distance = np.empty(size)
+        for i in range(size):
+            q[i] = self.contact_seeking(rng, int(node[i])) if seek[i] else self.uniform(rng)
+            distance[i] = self.robot.clearance(q[i], [self.obstacles[node[i]]]).distance
+        return {"q": q, "point": self.nodes[node], "collision": distance <= 0.0,
+                "near": distance <= self.config.margin, "distance": distance, "node": node,
+                "source": seek.astype(np.int8)}
+
+    def uniform(self, rng: np.random.Generator) -> np.ndarray:
+        """A valid configuration drawn uniformly within the joint limits."""
+        for _ in range(MAX_TRIES):
+            q = rng.uniform(self.lower, self.upper)
+            if self.valid(q):
+                return q
+        raise RuntimeError(f"no valid configuration in {MAX_TRIES} uniform draws")
+
+    def contact_seeking(self, rng: np.random.Generator, node: int) -> np.ndarray:
+        """A valid configuration whose arm passes close to ``node``: joints 2–7 uniform, joint 1
+        turned so that a random skeleton point lies a random aim distance from the node. A
+        node few postures can reach (the edge of the workspace) gets, after
+        ``AIM_PATIENCE`` misses, the posture's closest approach instead."""
+        aim_mid = LINK_RADIUS + self.config.radius
+        for attempt in range(MAX_TRIES):
+            q = rng.uniform(self.lower, self.upper)
+            q[0] = 0.0
+            aim = max(aim_mid + AIM_SPREAD * (2.0 * rng.random() - 1.0), 0.0)
+            yaw = self._aim_yaw(self._skeleton(q), node, aim, rng, attempt >= AIM_PATIENCE)
+            if yaw is None:
+                self.rejected["unreachable_aim"] += 1
+                continue
+            q[0] = yaw
+            if self.valid(q):
+                return q
+        raise RuntimeError(f"no valid contact-seeking configuration in {MAX_TRIES} draws")
+
+    def _skeleton(self, q: np.ndarray) -> np.ndarray:
+        """Points every ~3 cm along the polyline of link frames link2 … TCP (the arm's axis)."""
+        frames = self.robot.frame_positions(q)
+        names = [f"panda_link{i}" for i in range(2, 9)] + ["panda_hand", "panda_hand_tcp"]
+        chain = np.array([frames[n] for n in names])
+        points = [chain[:1]]
+        for a, b in zip(chain[:-1], chain[1:], strict=True):
+            n = max(1, math.ceil(float(np.linalg.norm(b - a)) / SKELETON_STEP))
+            points.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+        return np.vstack(points)
+
+    def _aim_yaw(self, skeleton: np.ndarray, node: int, aim: float, rng: np.random.Generator,
+                 closest_if_missed: bool) -> float | None:
+        """Joint-1 angle that puts a skeleton point (computed with joint 1 at 0) at distance
+        ``aim`` from the node, or None. Turning joint 1 by ψ moves a point at cylinder
+        coordinates (ρ, φ, z) to (ρ, φ + ψ, z), so its distance to the node (ρn, φn, zn)
+        obeys d² = ρ² + ρn² − 2ρρn·cos(φ + ψ − φn) + (z − zn)², solved here for ψ. Only
+        points whose closest approach over all ψ, hypot(ρ − ρn, z − zn), is within ``aim``
+        can be used; with ``closest_if_missed`` the point of closest approach is taken."""
+        rho = np.hypot(skeleton[:, 0], skeleton[:, 1])
+        dz = skeleton[:, 2] - self.nodes[node, 2]
+        rn = self.node_rho[node]
+        closest = np.hypot(rho - rn, dz)
+        usable = np.flatnonzero(closest <= aim)
+        if len(usable) == 0:
+            if not closest_if_missed:
+                return None
+            usable = np.array([int(np.argmin(closest))])
+            aim = float(closest[usable[0]])
+        k = int(rng.choice(usable))
+        if rho[k] * rn < 1e-6:  # point or node on the base axis: the yaw does not matter
+            return float(rng.uniform(self.lower[0], self.upper[0]))
+        cos_a = (rho[k] ** 2 + rn**2 + dz[k] ** 2 - aim**2) / (2.0 * rho[k] * rn)
+        alpha = math.acos(float(np.clip(cos_a, -1.0, 1.0)))
+        phi = math.atan2(skeleton[k, 1], skeleton[k, 0])
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        for s in (sign, -sign):
+            yaw = math.remainder(self.node_phi[node] + s * alpha - phi, 2.0 * math.pi)
+            if self.lower[0] <= yaw <= self.upper[0]:
+                return yaw
+        return None
+
+    def valid(self, q: np.ndarray) -> bool:
+        """A state a table-mounted arm can be in: link frames and TCP above the table plane
+        and no self-collision of the exact meshes."""
+        frames = self.robot.frame_positions(q)
+        if min(p[2] for name, p in frames.items() if name != "panda_link0") < self.config.floor:
+            self.rejected["below_floor"] += 1
+            return False
+        if self.robot.self_collision(q):
+            self.rejected["self_collision"] += 1
+            return False
+        return True
 
 
+# ---- chunk files ----------------------------------------------------------------------
+def chunk_path(out_dir: Path, index: int) -> Path:
+    return Path(out_dir) / f"chunk_{index:05d}.npz"
+
+
+def chunk_ranges(n_samples: int, chunk_size: int) -> list[tuple[int, int]]:
+    """(index, size) of every chunk of an ``n_samples`` data set; the last may be short."""
+    return [(k, min(chunk_size, n_samples - k * chunk_size))
+            for k in range(math.ceil(n_samples / chunk_size))]
+
+
+def _read_chunk(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return {k: f[k] for k in f.files}
+    except Exception as exc:  # zip, header or pickle refusal: all mean "not a valid chunk"
+        raise CollectError(f"{path}: unreadable chunk ({type(exc).__name__}: {exc})") from exc
+
+
+def _chunk_complete(path: Path, size: int, fingerprint: str, index: int) -> bool:
+    """A chunk counts as done when it loads and matches the parameters, index and size."""
+    if not path.is_file():
+        return False
+    try:
+        arrays = _read_chunk(path)
+    except CollectError:
+        return False
+    return (str(arrays.get("fingerprint", "")) == fingerprint
+            and int(arrays.get("chunk", -1)) == index
+            and all(k in arrays and len(arrays[k]) == size for k, *_ in COLUMNS))
+
+
+def _write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str, index: int,
+                 seconds: float) -> None:
+    """Write to a temporary name and rename, so an interrupted run leaves no half chunk."""
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, fingerprint=np.array(fingerprint), chunk=np.array(index),
+                 seconds=np.array(seconds), **arrays)
+    os.replace(tmp, path)
+
+
+_WORKER: Sampler | None = None
+
+
+def _init_worker(config: dict, nodes: list) -> None:
+    global _WORKER
+    _WORKER = Sampler(CollectConfig(**config), np.asarray(nodes, float))
+
+
+def _run_chunk(job: tuple[str, int, int]) -> dict:
+    """Make, write and summarise one chunk (in a worker); returns only small counts."""
+    out_dir, index, size = job
+    start = time.perf_counter()
+    before = dict(_WORKER.rejected)
+    arrays = _WORKER.chunk(index, size)
+    seconds = time.perf_counter() - start
+    _write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index,
+                 seconds)
+    rejected = {k: v - before[k] for k, v in _WORKER.rejected.items()}
+    return {"index": index, "size": size, "seconds": seconds, "rejected": rejected}
+
+
+# ---- the collection run ---------------------------------------------------------------
 def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None = None,
-            chunk_size: int = 10000, spacing: float = 0.15, radius: float = 0.03,
-            margin: float = 0.02, near_share: float = 0.3, progress: bool = True) -> dict:
-    """Collect ``n_samples`` rows into ``out_dir`` (resumable); returns the sidecar dict."""
-    if n_samples <= 0 or chunk_size <= 0:
-        raise ValueError("n_samples and chunk_size must be positive")
+            chunk_size: int = 5000, spacing: float = 0.15, radius: float = 0.03,
+            margin: float = 0.05, near_contact_share: float = 0.5,
+            reach: float = ARM_REACH + HAND_LENGTH, floor: float = 0.0,
+            progress: bool = True) -> dict:
+    """Collect ``n_samples`` labelled samples into ``out_dir`` (resumable) and return the
+    sidecar written to ``out_dir/dataset.json``."""
+    if not isinstance(n_samples, int) or n_samples < 1:
+        raise CollectError(f"n_samples must be a positive integer, got {n_samples!r}")
+    workers = os.cpu_count() or 1 if workers is None else workers
+    if not isinstance(workers, int) or workers < 1:
+        raise CollectError(f"workers must be a positive integer, got {workers!r}")
+    config = CollectConfig(seed=seed, chunk_size=chunk_size, spacing=spacing, reach=reach,
+                           radius=radius, margin=margin, near_contact_share=near_contact_share,
+                           floor=floor)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    nodes = workspace_nodes(spacing)
-    sizes = [min(chunk_size, n_samples - i) for i in range(0, n_samples, chunk_size)]
-    todo = [(str(out_dir), i, s, seed, nodes, radius, margin, near_share)
-            for i, s in enumerate(sizes) if not (out_dir / f"chunk_{i:05d}.npz").exists()]
-    workers = workers or os.cpu_count() or 1
-    t0 = time.perf_counter()
+    nodes = _nodes_for(out_dir, config)
+    fingerprint = config.fingerprint()
+    todo = [(str(out_dir), k, size) for k, size in chunk_ranges(n_samples, chunk_size)
+            if not _chunk_complete(chunk_path(out_dir, k), size, fingerprint, k)]
+    start = time.perf_counter()
+    reports = _run_jobs(todo, config, nodes, min(workers, max(1, len(todo))), n_samples,
+                        progress)
+    wall = time.perf_counter() - start
+    return _write_sidecar(out_dir, config, nodes, n_samples, reports, wall, workers)
+
+
+def _nodes_for(out_dir: Path, config: CollectConfig) -> np.ndarray:
+    """The nodes of an existing sidecar with the same parameters (so resuming does not pay
+    for them again), else freshly computed; a sidecar with other parameters is an error."""
+    sidecar = out_dir / SIDECAR
+    if sidecar.is_file():
+        meta = read_sidecar(out_dir)
+        if meta["fingerprint"] != config.fingerprint():
+            raise CollectError(f"{out_dir} holds a data set made with other parameters "
+                               f"({meta['config']}); use a new directory")
+        return np.asarray(meta["nodes"], float)
+    return workspace_nodes(config.spacing, config.reach, config.floor)
+
+
+def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int,
+              n_samples: int, progress: bool) -> list[dict]:
+    """Run chunk jobs in-process (one worker) or on a spawn pool, with one progress bar."""
     from tqdm import tqdm
 
-    bar = tqdm(total=n_samples, initial=n_samples - sum(t[2] for t in todo), unit="sample",
-               disable=not progress, desc="collect")
-    if workers == 1:
-        for task in todo:
-            _write_chunk(task)
-            bar.update(task[2])
-    else:
-        with mp.get_context("fork").Pool(workers) as pool:
-            for task, _ in zip(todo, pool.imap(_write_chunk, todo), strict=True):
-                bar.update(task[2])
-    bar.close()
-    elapsed = time.perf_counter() - t0
-    data = load_chunks(out_dir, len(sizes))
+    done = n_samples - sum(size for _, _, size in jobs)
+    bar = tqdm(total=n_samples, initial=done, unit="sample", disable=not progress,
+               desc="collect", smoothing=0.1)
+    reports = []
+    init_args = (asdict(config), nodes.tolist())
+    try:
+        if workers == 1:
+            _init_worker(*init_args)
+            results = map(_run_chunk, jobs)
+            for report in results:
+                reports.append(report)
+                bar.update(report["size"])
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(workers, initializer=_init_worker, initargs=init_args) as pool:
+                for report in pool.imap_unordered(_run_chunk, jobs):
+                    reports.append(report)
+                    bar.update(report["size"])
+    finally:
+        bar.close()
+    return reports
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for dist in ("numpy", "pin", "coal", "example-robot-data"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "unknown"
+    return out
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_samples: int,
+                   reports: list[dict], wall: float, workers: int) -> dict:
+    """Summarise every chunk of the data set (read back from disk) into ``dataset.json``."""
+    chunks, counts, cpu = [], {"collision": 0, "near": 0, "contact_seeking": 0,
+                               "collision_contact_seeking": 0}, 0.0
+    for k, size in chunk_ranges(n_samples, config.chunk_size):
+        path = chunk_path(out_dir, k)
+        arrays = _read_chunk(path)
+        counts["collision"] += int(arrays["collision"].sum())
+        counts["near"] += int(arrays["near"].sum())
+        seeking = arrays["source"] == 1
+        counts["contact_seeking"] += int(seeking.sum())
+        counts["collision_contact_seeking"] += int((arrays["collision"] & seeking).sum())
+        cpu += float(arrays["seconds"])
+        chunks.append({"file": path.name, "rows": size, "sha256": _sha256(path)})
+    counts["samples"] = n_samples
+    counts["free"] = n_samples - counts["collision"]
+    generated = sum(r["size"] for r in reports)
+    rejected = {k: sum(r["rejected"][k] for r in reports) for k in
+                ("self_collision", "below_floor", "unreachable_aim")}
     meta = {
-        "version": DATASET_VERSION, "columns": {
-            "q": "joint angles (rad), 7", "point": "obstacle point (m, base frame), 3",
-            "collision": "mesh distance <= 0", "near": "mesh distance <= margin",
-            "distance": "exact mesh distance to the point obstacle (m)",
-            "node": "obstacle-node index", "self_collision": "mesh self-collision"},
-        "n_samples": n_samples, "chunks": len(sizes), "chunk_size": chunk_size, "seed": seed,
-        "nodes": nodes.tolist(), "spacing": spacing, "radius": radius, "margin": margin,
-        "near_share": near_share, "collision_ratio": float(np.mean(data["collision"])),
-        "near_ratio": float(np.mean(data["near"])),
-        "self_collision_ratio": float(np.mean(data["self_collision"])),
-        "seconds_this_run": elapsed, "samples_this_run": sum(t[2] for t in todo),
+        "format": DATASET_FORMAT, "version": DATASET_VERSION,
+        "columns": [{"name": n, "width": w, "dtype": t, "description": d}
+                    for n, w, t, d in COLUMNS],
+        "n_samples": n_samples, "seed": config.seed, "config": asdict(config),
+        "fingerprint": config.fingerprint(), "radius": config.radius, "margin": config.margin,
+        "spacing": config.spacing,
+        "n_nodes": len(nodes), "nodes": np.round(nodes, 9).tolist(),
+        "counts": counts,
+        "collision_ratio": counts["collision"] / n_samples,
+        "collision_to_free": counts["collision"] / max(counts["free"], 1),
+        "near_ratio": counts["near"] / n_samples,
+        "rejected_this_run": rejected,
+        "timing": {"wall_s_this_run": round(wall, 3), "samples_this_run": generated,
+                   "samples_per_s_this_run": round(generated / wall, 1) if generated else None,
+                   "workers": workers, "chunk_cpu_s_total": round(cpu, 3)},
+        "versions": _versions(),
+        "chunks": chunks,
     }
-    (out_dir / "dataset.json").write_text(json.dumps(meta, indent=1) + "\n")
+    (out_dir / SIDECAR).write_text(json.dumps(meta, indent=1) + "\n")
     return meta
 
 
-def load_chunks(out_dir: Path, n_chunks: int) -> dict[str, np.ndarray]:
-    parts = []
-    for i in range(n_chunks):
-        path = Path(out_dir) / f"chunk_{i:05d}.npz"
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                parts.append({c: f[c] for c in COLUMNS})
-        except (OSError, KeyError, ValueError) as exc:
-            raise ValueError(f"{path}: missing or corrupt data chunk ({exc})") from exc
-    return {c: np.concatenate([p[c] for p in parts]) for c in COLUMNS}
-
-
-def load_dataset(out_dir: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """All columns of a collected data set, validated against ``dataset.json``."""
-    out_dir = Path(out_dir)
+# ---- reading --------------------------------------------------------------------------
+def read_sidecar(out_dir: str | Path) -> dict:
+    """``dataset.json`` of a data set directory, with its format checked."""
+    path = Path(out_dir) / SIDECAR
+    if not path.is_file():
+        raise CollectError(f"{path}: missing — not a damon_ros data set directory")
     try:
-        meta = json.loads((out_dir / "dataset.json").read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{out_dir}: no readable dataset.json ({exc})") from exc
-    data = load_chunks(out_dir, int(meta["chunks"]))
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CollectError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(meta, dict) or meta.get("format") != DATASET_FORMAT:
+        raise CollectError(f"{path}: not a {DATASET_FORMAT} sidecar")
+    if meta.get("version") != DATASET_VERSION:
+        raise CollectError(f"{path}: data set version {meta.get('version')!r}, this package "
+                           f"reads {DATASET_VERSION}")
+    for key in ("n_samples", "fingerprint", "nodes", "chunks", "columns"):
+        if key not in meta:
+            raise CollectError(f"{path}: no '{key}' entry")
+    return meta
+
+
+def load_dataset(out_dir: str | Path,
+                 verify_hashes: bool = True) -> tuple[dict[str, np.ndarray], dict]:
+    """(data, sidecar) of a collected data set. ``data`` holds every column as one array —
+    ``q`` (N,7), ``point`` (N,3), ``collision``, ``near``, ``distance``, ``node``, ``source``
+    (N,) — plus ``nodes`` (M,3) and ``self_collision`` (N,), all False: self-colliding
+    configurations are rejected at collection, the key is there for callers that mask them.
+    Checked against the sidecar: every chunk present, unmodified (SHA-256), of the right
+    size and dtype, node indices in range."""
+    out_dir = Path(out_dir)
+    meta = read_sidecar(out_dir)
+    parts: dict[str, list[np.ndarray]] = {name: [] for name, *_ in COLUMNS}
+    for entry in meta["chunks"]:
+        path = out_dir / entry["file"]
+        if not path.is_file():
+            raise CollectError(f"{path}: listed in {SIDECAR} but missing")
+        if verify_hashes and _sha256(path) != entry["sha256"]:
+            raise CollectError(f"{path}: SHA-256 does not match {SIDECAR} — the chunk was "
+                               "truncated, replaced or modified")
+        arrays = _read_chunk(path)
+        for name, width, dtype, _ in COLUMNS:
+            a = arrays.get(name)
+            shape = (entry["rows"],) if width == 1 else (entry["rows"], width)
+            if a is None or a.shape != shape or a.dtype != np.dtype(dtype):
+                got = None if a is None else f"{a.dtype}{a.shape}"
+                raise CollectError(f"{path}: column '{name}' should be {dtype}{shape}, got {got}")
+            parts[name].append(a)
+    data = {name: np.concatenate(chunks) for name, chunks in parts.items()}
     if len(data["q"]) != meta["n_samples"]:
-        raise ValueError(f"{out_dir}: {len(data['q'])} rows, dataset.json says "
-                         f"{meta['n_samples']}")
+        raise CollectError(f"{out_dir}: {len(data['q'])} rows, {SIDECAR} says "
+                           f"{meta['n_samples']}")
+    data["nodes"] = np.asarray(meta["nodes"], float).reshape(-1, 3)
+    if len(data["node"]) and (data["node"].min() < 0 or data["node"].max() >= len(
+            data["nodes"])):
+        raise CollectError(f"{out_dir}: node indices outside the {len(data['nodes'])} nodes")
+    data["self_collision"] = np.zeros(len(data["q"]), bool)
     return data, meta
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="damon-ros collect",
-                                     description="Collect labelled DAMON samples (resumable).")
+# ---- command line ---------------------------------------------------------------------
+def collect_main(argv: list[str] | None = None) -> int:
+    """``damon-ros collect``: collect a labelled data set."""
+    parser = argparse.ArgumentParser(
+        prog="damon-ros collect",
+        description="Collect DAMON training samples (q, obstacle point, collision) labelled "
+                    "with exact mesh distances; chunked and resumable.")
     parser.add_argument("--n", type=int, default=1_000_000, help="number of samples")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
-    parser.add_argument("--chunk-size", type=int, default=10000)
-    parser.add_argument("--spacing", type=float, default=0.25, help="obstacle-node grid (m)")
-    parser.add_argument("--radius", type=float, default=0.03, help="point-obstacle radius (m)")
-    parser.add_argument("--margin", type=float, default=0.02, help="λ for the near flag (m)")
-    parser.add_argument("--near-share", type=float, default=0.3)
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--chunk-size", type=int, default=5000)
+    parser.add_argument("--spacing", type=float, default=0.15, help="obstacle-node grid (m)")
+    parser.add_argument("--radius", type=float, default=0.03, help="point obstacle radius (m)")
+    parser.add_argument("--margin", type=float, default=0.05, help="λ for the 'near' flag (m)")
+    parser.add_argument("--near-contact-share", type=float, default=0.5,
+                        help="share of contact-seeking configurations")
+    parser.add_argument("--reach", type=float, default=ARM_REACH + HAND_LENGTH,
+                        help="node ball radius about the shoulder (m)")
+    parser.add_argument("--floor", type=float, default=0.0, help="table plane height (m)")
+    parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:
-        meta = collect(args.n, args.seed, args.out, args.workers, args.chunk_size, args.spacing,
-                       args.radius, args.margin, args.near_share, progress=not args.quiet)
+        meta = collect(args.n, args.seed, args.out, workers=args.workers,
+                       chunk_size=args.chunk_size, spacing=args.spacing, radius=args.radius,
+                       margin=args.margin, near_contact_share=args.near_contact_share,
+                       reach=args.reach, floor=args.floor, progress=not args.no_progress)
     except ValueError as exc:
         print(f"damon-ros collect: {exc}", file=sys.stderr)
         return 2
-    rate = meta["samples_this_run"] / max(meta["seconds_this_run"], 1e-9)
-    print(f"{meta['n_samples']} samples, {len(meta['nodes'])} obstacle nodes, colliding "
-          f"{100 * meta['collision_ratio']:.1f} %, within λ {100 * meta['near_ratio']:.1f} %, "
-          f"self-colliding {100 * meta['self_collision_ratio']:.1f} %; this run "
-          f"{meta['samples_this_run']} samples in {meta['seconds_this_run']:.1f} s "
-          f"({rate:.0f}/s)")
+    t, c = meta["timing"], meta["counts"]
+    print(f"{meta['n_samples']} samples, {meta['n_nodes']} obstacle nodes, "
+          f"colliding {c['collision']} ({100 * meta['collision_ratio']:.1f} %), "
+          f"within margin {c['near']} ({100 * meta['near_ratio']:.1f} %); "
+          f"this run {t['samples_this_run']} samples in {t['wall_s_this_run']:.1f} s "
+          f"({t['samples_per_s_this_run']} /s) -> {args.out}")
     return 0
+
+
+main = collect_main  # the name ``damon-ros`` (cli.SUBCOMMANDS) calls

@@ -239,9 +239,9 @@ class CommandShaper:
         v <= sqrt(2 b d) with d the distance left and b a fraction of the acceleration limit,
         so motion toward a limit fades to zero at the limit, and none is allowed past it.
         """
-        high = np.sqrt(self._brake * np.maximum(self.upper - q, 0.0))
-        low = np.sqrt(self._brake * np.maximum(q - self.lower, 0.0))
-        return -np.minimum(low, self.vmax), np.minimum(high, self.vmax)
+        room = np.maximum(np.array((self.upper - q, q - self.lower)), 0.0)
+        up, down = np.minimum(np.sqrt(self._brake * room), self.vmax)
+        return -down, up
 
     def shape(self, target: np.ndarray, u: np.ndarray, a: np.ndarray,
               dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -251,6 +251,8 @@ class CommandShaper:
         """
         vmax, amax = self.vmax, self.amax
         jd = self.jmax * dt
+        if np.isnan(target).any():  # inf - inf from absurd inputs: no sensible target, stop
+            target = np.nan_to_num(target, nan=0.0)
         target = np.minimum(np.maximum(target, -vmax), vmax)
         a_goal = _reachable_acceleration(target - u, self.jmax, dt)
         low, high = np.maximum(a - jd, -amax), np.minimum(a + jd, amax)
@@ -378,8 +380,12 @@ class TrajectoryFollower:
             return self._fault(dt)
         self._resolve_pending(t, q)
         q_d, qd_d, qdd_d = self._desired_state(t)
-        target = self._pid(q_d - q, qd_d, dt, q)
+        target, integral = self._pid(q_d - q, qd_d, dt, q)
         self._u, self._a = self.shaper.shape(target, self._u, self._a, dt)
+        # Anti-windup: integrate only where the arm is given what the PID asked for — not
+        # clipped, and not more than a step of full acceleration behind (rate-limited).
+        free = np.abs(self._u - target) <= self.shaper.amax * dt
+        self._integral = np.where(free, integral, self._integral)
         self._q_last = q.copy()
         self._desired = (q_d, qd_d, qdd_d)
         return self._u.copy()
@@ -396,11 +402,12 @@ class TrajectoryFollower:
             return self._hold_q.copy(), zero, zero.copy()
         return self._spline.evaluate(t - self._start)
 
-    def _pid(self, e: np.ndarray, qd_d: np.ndarray, dt: float, q: np.ndarray) -> np.ndarray:
-        """PID + feed-forward, clipped to the velocity and position-limit bounds.
+    def _pid(self, e: np.ndarray, qd_d: np.ndarray, dt: float, q: np.ndarray):
+        """(PID + feed-forward clipped to the velocity and position-limit bounds, integral).
 
-        Anti-windup: the integral is clamped so that its term stays within ``i_clamp``, and
-        it only grows on joints whose output is not saturated.
+        The integral returned is clamped so that its term stays within ``i_clamp``; `update`
+        keeps it only on joints whose output is not saturated, and only if it was not clipped
+        here (a clipped raw output lies beyond the bounds, so it can never be delivered).
         """
         g = self.gains
         step = min(dt, 10.0 / self.rate_hz)  # a stalled loop must not dump a lump into I
@@ -411,9 +418,8 @@ class TrajectoryFollower:
             raw += g.d * (e - self._e_prev) / dt
         low, high = self.shaper.position_bounds(q)
         target = np.minimum(np.maximum(raw, low), high)
-        self._integral = np.where(raw == target, integral, self._integral)
         self._e_prev = self._error = e
-        return target
+        return target, np.where(raw == target, integral, self._integral)
 
     def _fault(self, dt: float) -> np.ndarray:
         self.last_fault = "measured position holds NaN or inf: trajectory aborted, holding"

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from damon_ros.planner import PlanResult, Planner
+from damon_ros.planner import Planner, PlanResult
 from damon_ros.shapes import Shape
 
 

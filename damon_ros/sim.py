@@ -76,7 +76,8 @@ class ArmSim:
     def _target(self, t: float) -> np.ndarray:
         if self._cmd_time is None or t - self._cmd_time > self.command_timeout:
             return np.zeros(self.n)
-        return np.clip(self._cmd, -self.limits.velocity, self.limits.velocity)
+        vmax = self.limits.velocity
+        return np.minimum(np.maximum(self._cmd, -vmax), vmax)
 
     def step(self, dt: float, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Advance by ``dt`` to time ``t``; returns the new (q, qd)."""
@@ -85,12 +86,15 @@ class ArmSim:
             raise ValueError(f"time must be finite, got {t}")
         lim = self.limits
         target = self._target(t)
-        response = target + (self._qd - target) * math.exp(-dt / self.tau)
+        # Exact first-order step: (target - qd) shrinks by exp(-dt / tau).
+        change = (target - self._qd) * (1.0 - math.exp(-dt / self.tau))
         max_change = lim.acceleration * dt
-        qd = np.clip(self._qd + np.clip(response - self._qd, -max_change, max_change),
-                     -lim.velocity, lim.velocity)
-        q = self._q + 0.5 * (self._qd + qd) * dt
+        change = np.minimum(np.maximum(change, -max_change), max_change)
+        qd = np.minimum(np.maximum(self._qd + change, -lim.velocity), lim.velocity)
+        q = self._q + (0.5 * dt) * (self._qd + qd)
         high, low = q >= lim.upper, q <= lim.lower
-        qd = np.where(high, np.minimum(qd, 0.0), np.where(low, np.maximum(qd, 0.0), qd))
-        self._q, self._qd = np.clip(q, lim.lower, lim.upper), qd
-        return self.q, self.qd
+        if high.any() or low.any():  # at a limit: stop there, no velocity into it
+            qd = np.where(high, np.minimum(qd, 0.0), np.where(low, np.maximum(qd, 0.0), qd))
+            q = np.minimum(np.maximum(q, lim.lower), lim.upper)
+        self._q, self._qd = q, qd
+        return q.copy(), qd.copy()

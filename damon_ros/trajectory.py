@@ -197,15 +197,15 @@ class Trajectory:
 
 
 def time_grid(duration: float, dt: float) -> np.ndarray:
-    """0, dt, 2dt, ... and ``duration`` itself, never with a gap below dt/1000."""
+    """0, dt, 2dt, ... and ``duration`` itself, with no gap below dt/1000 but the first."""
     if not (np.isfinite(dt) and dt > 0.0):
         raise ValueError(f"dt must be a positive finite number, got {dt}")
     if not (np.isfinite(duration) and duration >= 0.0):
         raise ValueError(f"duration must be finite and >= 0, got {duration}")
     grid = np.arange(0.0, duration, dt)
-    if grid.size and duration - grid[-1] < 1e-3 * dt:
+    if grid.size > 1 and duration - grid[-1] < 1e-3 * dt:
         grid = grid[:-1]
-    return np.append(grid, duration)
+    return np.append(grid, duration) if duration > 0.0 else np.zeros(1)
 
 
 def _with_knots(grid: np.ndarray, knots: np.ndarray, dt: float) -> np.ndarray:
@@ -217,27 +217,49 @@ def _with_knots(grid: np.ndarray, knots: np.ndarray, dt: float) -> np.ndarray:
     if knots.size == 0:
         return grid
     near = np.min(np.abs(grid[:, None] - knots[None, :]), axis=1) < 1e-3 * dt
-    keep = grid[~near | (grid == grid[-1])]
+    keep = grid[~near | (grid == grid[-1]) | (grid == 0.0)]
     return np.unique(np.concatenate((keep, knots)))
 
 
 @dataclass(frozen=True)
 class _Segment:
-    """One rest-to-rest straight move: q(t) = start + s(t) * direction, s from 0 to length."""
+    """One rest-to-rest straight move: q(t) = start + s(t) * direction, s from 0 to length.
+
+    s(t) is ruckig's seven-phase constant-jerk profile, kept as its phase table (durations,
+    jerks and the state at each phase start) so that sampling is vectorised rather than a
+    Python call to ruckig per sample.
+    """
 
     start: np.ndarray
     direction: np.ndarray  # max-norm 1
-    length: float
-    profile: _RuckigTrajectory
+    phase_start: np.ndarray  # (7,) times at which the phases begin
+    jerk: np.ndarray  # (7,) per phase
+    state: np.ndarray  # (3, 8): s, sd, sdd at each phase boundary
+    duration: float
 
-    @property
-    def duration(self) -> float:
-        return float(self.profile.duration)
+    @classmethod
+    def from_ruckig(cls, start, direction, trajectory: _RuckigTrajectory) -> _Segment:
+        profile = trajectory.profiles[0][0]
+        if profile.brake.duration > 0.0 or profile.accel.duration > 0.0:
+            raise ValueError("unexpected ruckig brake/accel pre-profile on a rest-to-rest move")
+        t = np.asarray(profile.t, dtype=float)
+        state = np.array([profile.p, profile.v, profile.a], dtype=float)
+        starts = np.concatenate(([0.0], np.cumsum(t)[:-1]))
+        return cls(start, direction, starts, np.asarray(profile.j, dtype=float), state,
+                   float(trajectory.duration))
 
-    def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        s, sd, sdd = self.profile.at_time(min(max(t, 0.0), self.duration))
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, qd, qdd), each (len(times), dof), at segment-local ``times`` (clamped)."""
+        t = np.clip(np.asarray(times, dtype=float), 0.0, self.duration)
+        k = np.searchsorted(self.phase_start, t, side="right") - 1
+        h = t - self.phase_start[k]
+        s0, v0, a0 = self.state[:, k]
+        j = self.jerk[k]
+        s = s0 + h * (v0 + h * (a0 / 2.0 + h * j / 6.0))
+        sd = v0 + h * (a0 + h * j / 2.0)
+        sdd = a0 + h * j
         u = self.direction
-        return self.start + s[0] * u, sd[0] * u, sdd[0] * u
+        return self.start + np.outer(s, u), np.outer(sd, u), np.outer(sdd, u)
 
 
 def _line_profile(a: np.ndarray, b: np.ndarray, vmax, amax, jmax, otg: Ruckig) -> _Segment:
@@ -257,7 +279,7 @@ def _line_profile(a: np.ndarray, b: np.ndarray, vmax, amax, jmax, otg: Ruckig) -
     result = otg.calculate(inp, profile)
     if result != Result.Working:
         raise ValueError(f"ruckig could not time-parameterise a segment: {result}")
-    return _Segment(a, u, length, profile)
+    return _Segment.from_ruckig(a, u, profile)
 
 
 def _check_scale(name: str, value: float) -> float:
@@ -302,15 +324,14 @@ def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> T
     ends = np.cumsum([s.duration for s in segments]) if segments else np.zeros(0)
     total = float(ends[-1]) if segments else 0.0
     times = _with_knots(time_grid(total, dt), ends, dt)
-    q = np.empty((times.size, goal.size))
+    q = np.tile(goal, (times.size, 1))
     qd = np.zeros_like(q)
     qdd = np.zeros_like(q)
-    starts = np.concatenate(([0.0], ends[:-1])) if segments else ends
-    index = np.minimum(np.searchsorted(ends, times, side="left"), max(len(segments) - 1, 0))
-    for k, (t, i) in enumerate(zip(times, index, strict=True)):
-        if not segments:
-            q[k] = goal
-            continue
-        q[k], qd[k], qdd[k] = segments[i].at(t - starts[i])
+    starts = np.concatenate(([0.0], ends[:-1]))
+    # Samples on a waypoint time belong to the segment ending there (they are equal anyway).
+    index = np.searchsorted(ends, times, side="left")
+    for i, seg in enumerate(segments):
+        rows = index == i
+        q[rows], qd[rows], qdd[rows] = seg.at(times[rows] - starts[i])
     q[-1], qd[-1], qdd[-1] = goal, 0.0, 0.0
     return Trajectory(times, q, qd, qdd)

@@ -75,6 +75,19 @@ def test_random_paths_stay_on_segments_and_within_limits(seed):
     assert_follows_path(path, np.array([traj.sample(t)[0] for t in mid]))
 
 
+def test_samples_are_consistent_derivatives_of_each_other():
+    """Velocities and accelerations are the derivatives of the sampled positions."""
+    path = random_path(np.random.default_rng(11), 4)
+    dt = 1e-4
+    traj = time_parameterize(path, LIM, 0.7, 0.6, 0.5, dt=dt)
+    inner = np.abs(np.diff(traj.times) - dt) < 1e-12  # uniform gaps (not next to knots)
+    ok = inner[:-1] & inner[1:]
+    qd_fd = (traj.positions[2:] - traj.positions[:-2]) / (2 * dt)
+    qdd_fd = (traj.velocities[2:] - traj.velocities[:-2]) / (2 * dt)
+    assert np.max(np.abs(qd_fd - traj.velocities[1:-1])[ok]) < 1e-4
+    assert np.max(np.abs(qdd_fd - traj.accelerations[1:-1])[ok]) < 0.5  # jerk switches
+
+
 def test_arm_rests_at_every_waypoint():
     path = random_path(np.random.default_rng(3), 4)
     path = np.delete(path, 2, axis=0)  # no repeats: every waypoint is a corner
@@ -185,6 +198,17 @@ def test_time_grid_keeps_the_end_without_tiny_gaps():
     assert np.allclose(time_grid(0.1, 0.03), [0.0, 0.03, 0.06, 0.09, 0.1])
     assert np.allclose(time_grid(0.09000001, 0.03), [0.0, 0.03, 0.06, 0.09000001])
     assert np.array_equal(time_grid(0.0, 0.01), [0.0])
+    assert np.array_equal(time_grid(1e-8, 0.01), [0.0, 1e-8])
+
+
+def test_tiny_moves_still_start_at_zero_and_end_on_the_goal():
+    q0 = np.array([0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0])
+    for step in (2e-9, 1e-7, 1e-4):
+        path = np.array([q0, q0 + step, q0 + 2 * step, q0 + 0.2])
+        traj = time_parameterize(path, LIM, dt=0.01)
+        assert traj.times[0] == 0.0 and np.array_equal(traj.positions[-1], path[-1])
+        assert_follows_path(path, traj.positions)
+        check_limits(traj, LIM)
 
 
 def poly(coeffs, t):
