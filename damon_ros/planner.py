@@ -37,6 +37,25 @@ class PoseGoal:
 
 
 @dataclass(frozen=True)
+class Scene:
+    """Obstacles now, and the same obstacles swept over the prediction horizon.
+
+    The first segment of a path (it leaves the arm's current state) is certified against
+    ``now`` with a margin that lets the arm move away from an obstacle that has already come
+    close; every later segment is certified against ``ahead``."""
+
+    now: tuple[Shape, ...]
+    ahead: tuple[Shape, ...]
+
+    @classmethod
+    def of(cls, obstacles) -> Scene:
+        if isinstance(obstacles, Scene):
+            return obstacles
+        shapes = tuple(obstacles)
+        return cls(shapes, shapes)
+
+
+@dataclass(frozen=True)
 class PlannerConfig:
     """Explicit planner settings (the planner node exposes each as a parameter)."""
 
@@ -81,12 +100,12 @@ class _Query:
     START = -1
     GOAL = -2
 
-    def __init__(self, planner: Planner, q_start, q_goal, obstacles, start_margin):
+    def __init__(self, planner: Planner, q_start, q_goal, scene: Scene):
         self.p = planner
         self.q_start = q_start
         self.q_goal = q_goal
-        self.obstacles = obstacles
-        self.start_margin = start_margin
+        self.scene = scene
+        self.start_margin = planner._start_margin(q_start, scene.now)
         self.valid: dict[tuple[int, int], bool] = {}
         self.checked = 0
         self.rejected = 0
@@ -103,15 +122,21 @@ class _Query:
         key = (u, v) if u < v else (v, u)
         known = self.valid.get(key)
         if known is None:
-            margin = self.start_margin if self.START in key else self.p.config.margin
             q0, q1 = self.config(u), self.config(v)
-            known = self.p.segment_free(q0, q1, self.obstacles, margin)
+            known = self.segment_certified(q0, q1, first=self.START in key)
             if known and key[0] < 0:  # not a graph edge: self-collision was not verified offline
                 known = self.p.robot.segment_self_collision_free(q0, q1)
             self.valid[key] = known
             self.checked += 1
             self.rejected += not known
         return known
+
+    def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool) -> bool:
+        """Obstacle check of one segment: a first segment against the obstacles now with the
+        start margin, any other against the swept obstacles with the full margin."""
+        if first:
+            return self.p.segment_free(q0, q1, self.scene.now, self.start_margin)
+        return self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
 
 
 class Planner:
@@ -176,27 +201,27 @@ class Planner:
         return q_goal, ""
 
     # ---- planning -------------------------------------------------------------------
-    def plan(self, q_start: np.ndarray, goal, obstacles: Sequence[Shape] = ()) -> PlanResult:
+    def plan(self, q_start: np.ndarray, goal, obstacles=()) -> PlanResult:
         """Plan from ``q_start`` to a :class:`PoseGoal` or joint goal, certified against all
-        ``obstacles``; remembers the goal for :meth:`replan`."""
+        ``obstacles`` (shapes, or a :class:`Scene`); remembers the goal for :meth:`replan`."""
         t0 = time.perf_counter()
         q_start = np.asarray(q_start, float)
         problem = self._check_start(q_start)
         if problem:
             return PlanResult(False, problem)
-        obstacles = list(obstacles)
-        q_goal, reason = self.resolve_goal(goal, q_start, obstacles)
+        scene = Scene.of(obstacles)
+        q_goal, reason = self.resolve_goal(goal, q_start, scene.now)
         t_ik = time.perf_counter()
         if q_goal is None:
             self.goal_q = None
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
         self.goal_q = q_goal
-        result = self._route(q_start, q_goal, obstacles)
+        result = self._route(q_start, q_goal, scene)
         result.timing_ms["ik"] = 1e3 * (t_ik - t0)
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
-    def replan(self, q_now: np.ndarray, obstacles: Sequence[Shape] = ()) -> PlanResult:
+    def replan(self, q_now: np.ndarray, obstacles=()) -> PlanResult:
         """Re-route from the current state toward the goal of the last successful plan."""
         t0 = time.perf_counter()
         if self.goal_q is None:
@@ -205,7 +230,7 @@ class Planner:
         problem = self._check_start(q_now)
         if problem:
             return PlanResult(False, problem)
-        result = self._route(q_now, self.goal_q, list(obstacles))
+        result = self._route(q_now, self.goal_q, Scene.of(obstacles))
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
@@ -216,11 +241,10 @@ class Planner:
             return "start state is outside the joint limits"
         return ""
 
-    def _route(self, q_start, q_goal, obstacles) -> PlanResult:
+    def _route(self, q_start, q_goal, scene: Scene) -> PlanResult:
         t0 = time.perf_counter()
-        start_margin = self._start_margin(q_start, obstacles) if obstacles else 0.0
-        query = _Query(self, q_start, q_goal, obstacles, start_margin)
-        order = self._node_order(q_start, obstacles)
+        query = _Query(self, q_start, q_goal, scene)
+        order = self._node_order(q_start, scene.now)
         path_ids, searched = None, 0
         for width in self.config.widen:
             searched = len(order) if width == 0 else min(width, len(order))
@@ -240,7 +264,7 @@ class Planner:
         else:
             path = np.array([query.config(v) for v in path_ids])
             if self.config.shortcut:
-                path = self._shortcut(path, obstacles, start_margin, query)
+                path = self._shortcut(path, query)
             result.success, result.path = True, path
             result.trajectory = self._time_parameterize(path)
         t_end = time.perf_counter()
@@ -332,8 +356,7 @@ class Planner:
                     relax(u, v, w, heuristic[v])
         return None
 
-    def _shortcut(self, path: np.ndarray, obstacles, start_margin: float,
-                  query: _Query) -> np.ndarray:
+    def _shortcut(self, path: np.ndarray, query: _Query) -> np.ndarray:
         """Greedy shortcutting: from each kept waypoint jump to the farthest later waypoint
         whose straight segment is certified free (fewer stops, shorter motion)."""
         keep = [0]
@@ -342,17 +365,15 @@ class Planner:
             for j in range(len(path) - 1, i, -1):
                 if j == i + 1:
                     break
-                margin = start_margin if i == 0 else self.config.margin
                 query.checked += 1
-                if self.segment_free(path[i], path[j], obstacles, margin) and \
+                if query.segment_certified(path[i], path[j], first=i == 0) and \
                         self.robot.segment_self_collision_free(path[i], path[j]):
                     break
             keep.append(j)
             i = j
-        return self._pull_tight(path[keep], obstacles, start_margin, query)
+        return self._pull_tight(path[keep], query)
 
-    def _pull_tight(self, path: np.ndarray, obstacles, start_margin: float, query: _Query,
-                    rounds: int = 6) -> np.ndarray:
+    def _pull_tight(self, path: np.ndarray, query: _Query, rounds: int = 6) -> np.ndarray:
         """Move each interior waypoint halfway toward the midpoint of its neighbours while
         both of its segments stay certified: the detour through a far graph vertex shrinks
         toward the obstacle's silhouette (a few extra segment checks, much shorter motion)."""
@@ -363,11 +384,9 @@ class Planner:
                 candidate = path[i] + 0.5 * (0.5 * (path[i - 1] + path[i + 1]) - path[i])
                 if not self.limits.within(candidate):
                     continue
-                first = start_margin if i == 1 else self.config.margin
                 query.checked += 2
-                if (self.segment_free(path[i - 1], candidate, obstacles, first)
-                        and self.segment_free(candidate, path[i + 1], obstacles,
-                                              self.config.margin)
+                if (query.segment_certified(path[i - 1], candidate, first=i == 1)
+                        and query.segment_certified(candidate, path[i + 1], first=False)
                         and self.robot.segment_self_collision_free(path[i - 1], candidate)
                         and self.robot.segment_self_collision_free(candidate, path[i + 1])):
                     path[i] = candidate
@@ -384,21 +403,56 @@ class Planner:
                                  acceleration_scale=c.acceleration_scale,
                                  jerk_scale=c.jerk_scale, dt=c.trajectory_dt)
 
+    def escape(self, q_now: np.ndarray, obstacles, candidates: int = 96,
+               rng: np.random.Generator | None = None) -> PlanResult:
+        """A short certified move to a configuration with more clearance, for when no route
+        to the goal exists and an obstacle is closing in: holding still is not safe from
+        something that moves. Candidates are nearby graph vertices and random joint
+        perturbations, ranked by clearance from the swept obstacles; the clearest whose
+        straight segment is certified (against the obstacles now) wins."""
+        t0 = time.perf_counter()
+        q_now = np.asarray(q_now, float)
+        scene = Scene.of(obstacles)
+        if not scene.now:
+            return PlanResult(False, "nothing to escape from")
+        rng = rng or np.random.default_rng(0)
+        current = self.clearance(q_now, scene.ahead)
+        _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))
+        near = self.graph.q[self._safe_ids[np.atleast_1d(idx)]]
+        jitter = self.limits.clip(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
+        pool = np.vstack([near, jitter])
+        clear = self.robot.distances(pool, scene.ahead)
+        query = _Query(self, q_now, q_now, scene)
+        for i in np.argsort(-clear)[:24]:
+            if clear[i] <= max(current, self.config.margin) + 0.01:
+                break
+            query.checked += 1
+            if query.segment_certified(q_now, pool[i], first=True) and \
+                    self.robot.segment_self_collision_free(q_now, pool[i]):
+                path = np.array([q_now, pool[i]])
+                return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
+                                  path=path, trajectory=self._time_parameterize(path),
+                                  goal_q=self.goal_q, edges_checked=query.checked,
+                                  timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+        return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
+                          timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+
     # ---- monitoring -----------------------------------------------------------------
     def path_threatened(self, q_now: np.ndarray, remaining: np.ndarray,
-                        obstacles: Sequence[Shape]) -> tuple[bool, str]:
+                        obstacles) -> tuple[bool, str]:
         """Is the rest of the path (from ``q_now`` through ``remaining`` waypoints) no longer
         certified free against the current obstacles? Returns (threatened, why)."""
-        if not obstacles:
+        scene = Scene.of(obstacles)
+        if not scene.now:
             return False, ""
-        points = np.vstack([np.asarray(q_now, float)[None], np.asarray(remaining, float)])
-        margin = self._start_margin(points[0], obstacles)
-        for a, b in zip(points, points[1:], strict=False):
-            if not self.segment_free(a, b, obstacles, margin):
+        q_now = np.asarray(q_now, float)
+        points = np.vstack([q_now[None], np.asarray(remaining, float).reshape(-1, 7)])
+        query = _Query(self, q_now, q_now, scene)
+        for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
+            if not query.segment_certified(a, b, first=i == 0):
                 return True, "an obstacle blocks the remaining path"
-            margin = self.config.margin
         if self.risk is not None:
-            p = float(self.risk(points[0], obstacles))
+            p = float(self.risk(q_now, scene.now))
             if p > 0.5:
                 return True, f"p(collision) at the current state is {p:.2f}"
         return False, ""

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from damon_ros.planner import Planner, PlanResult
+from damon_ros.planner import Planner, PlanResult, Scene
 from damon_ros.shapes import Shape
 
 
@@ -50,6 +50,7 @@ class RuntimeConfig:
     prediction_horizon_s: float = 0.3
     goal_tolerance_rad: float = 0.01
     retry_period_s: float = 0.1  # how often a holding arm looks for a route again
+    escape_clearance_m: float = 0.05  # a holding arm moves away when an obstacle is closer
     perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
 
 
@@ -58,6 +59,7 @@ class RuntimeStats:
     plans: int = 0
     replans: int = 0
     holds: int = 0
+    escapes: int = 0
     replan_latency_ms: list[float] = field(default_factory=list)
     plan_latency_ms: list[float] = field(default_factory=list)
 
@@ -77,15 +79,16 @@ class ReactivePlanner:
         self.last_probability = 0.0
         self.stats = RuntimeStats()
 
-    def obstacles_for_check(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> list[Shape]:
+    def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> Scene:
+        """Obstacles now and swept along their velocities over the prediction horizon."""
         h = self.config.prediction_horizon_s
-        return [swept(s, v, h) for s, v in obstacles]
+        return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles))
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]]
                  ) -> Event:
         """Plan to a new goal (replacing any current one)."""
         t0 = time.perf_counter()
-        result = self.planner.plan(q_now, goal, self.obstacles_for_check(obstacles))
+        result = self.planner.plan(q_now, goal, self.scene(obstacles))
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)
@@ -113,17 +116,22 @@ class ReactivePlanner:
         if timeout > 0 and perception_age_s > timeout and self.state == "executing":
             return self._hold(f"obstacle data is {perception_age_s:.2f} s old "
                               f"(limit {timeout:.2f} s)")
-        shapes = self.obstacles_for_check(obstacles)
-        if self.risk is not None and shapes:
-            self.last_probability = float(self.risk(q_now, shapes))
+        shapes = self.scene(obstacles)
+        if self.risk is not None and shapes.now:
+            self.last_probability = float(self.risk(q_now, shapes.now))
         if self.state == "holding":
-            if t - self.last_retry < self.config.retry_period_s:
-                return None
             if timeout > 0 and perception_age_s > timeout:
                 return None
-            self.last_retry = t
-            return self._reroute(q_now, shapes, "route found again; resuming")
+            if t - self.last_retry >= self.config.retry_period_s:
+                self.last_retry = t
+                event = self._reroute(q_now, shapes, "route found again; resuming")
+                if event is not None:
+                    return event
+            return self._escape_if_threatened(q_now, shapes)
         if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
+            if np.max(np.abs(self.path[-1] - self.planner.goal_q)) > 1e-9:
+                self.state, self.last_retry = "holding", -math.inf  # an escape move ended
+                return None
             self.state = "reached"
             return Event("reached", "goal reached")
         self._advance(q_now)
@@ -133,10 +141,24 @@ class ReactivePlanner:
             return None
         return self._reroute(q_now, shapes, why)
 
+    def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene) -> Event | None:
+        """While holding, move away from an obstacle that comes within the escape distance."""
+        if not shapes.now or self.planner.clearance(q_now, shapes.ahead) > \
+                self.config.escape_clearance_m:
+            return None
+        t0 = time.perf_counter()
+        result = self.planner.escape(q_now, shapes)
+        if not result.success:
+            return None
+        self.stats.escapes += 1
+        event = self._execute(result, 1e3 * (time.perf_counter() - t0))
+        event.reason = result.reason
+        return event
+
     def remaining_path(self) -> np.ndarray:
         return self.path[self.segment + 1:]
 
-    def _reroute(self, q_now: np.ndarray, shapes: list[Shape], why: str) -> Event:
+    def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str) -> Event | None:
         t0 = time.perf_counter()
         result = self.planner.replan(q_now, shapes)
         latency = 1e3 * (time.perf_counter() - t0)
