@@ -118,18 +118,26 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     t, q, qd_prev = 0.0, scenario.start.copy(), np.zeros(7)
     next_camera, held_since = 0.0, None
 
-    def apply(event: Event | None, now: float) -> float:
-        """Act on a runtime event; returns the simulated time the decision took."""
+    pending: list = []  # (activation time, event): a decision takes effect once computed
+
+    def decide(event: Event | None, now: float) -> float:
+        """Queue a runtime event to act when its computation (measured wall time) is over;
+        returns that time. Meanwhile the arm keeps doing what it did and is scored."""
         if event is None:
-            return 0.0
-        spent = event.latency_ms / 1e3
-        if event.kind == "trajectory":
-            tr = event.result.trajectory
-            follower.set_trajectory(tr.times, tr.positions, tr.velocities, tr.accelerations,
-                                    start_time=now + spent)
-        elif event.kind == "hold":
-            follower.hold(sim.q)
-        return spent
+            return now
+        ready = now + event.latency_ms / 1e3
+        pending.append((ready, event))
+        return ready
+
+    def act(now: float) -> None:
+        while pending and pending[0][0] <= now:
+            _, event = pending.pop(0)
+            if event.kind == "trajectory":
+                tr = event.result.trajectory
+                follower.set_trajectory(tr.times, tr.positions, tr.velocities,
+                                        tr.accelerations, start_time=now)
+            elif event.kind == "hold":
+                follower.hold(sim.q)
 
     t0 = time.perf_counter()
     event = runtime.set_goal(q, goal, perception.observe(t))
@@ -137,12 +145,14 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     if event.kind == "refused":
         record.error = f"goal refused: {event.reason}"
         return _finish(record, runtime, scenario, t)
-    t += apply(event, t)
+    busy_until = decide(event, t)
+    follower.hold(sim.q)
     while t < scenario.time_limit:
+        act(t)
         if t >= next_camera:
             next_camera += config.camera_period
-            event = runtime.update(t, sim.q, perception.observe(t))
-            t += apply(event, t)
+            if t >= busy_until:  # the planner takes the newest frame once it is free
+                busy_until = decide(runtime.update(t, sim.q, perception.observe(t)), t)
         u = follower.update(t, sim.q)
         sim.command(u, t)
         t += config.control_dt

@@ -70,6 +70,7 @@ class PlannerConfig:
     jerk_scale: float = 0.5
     trajectory_dt: float = 0.01
     ik_seeds: int = 16
+    time_budget_s: float = 0.25  # a route search gives up (and says so) after this long
 
 
 @dataclass
@@ -110,6 +111,7 @@ class _Query:
         self.checked = 0
         self.rejected = 0
         self.iterations = 0
+        self.deadline = time.perf_counter() + planner.config.time_budget_s
 
     def config(self, v: int) -> np.ndarray:
         if v == self.START:
@@ -171,10 +173,15 @@ class Planner:
         return float(self.robot.clearance(q, obstacles).distance)
 
     def _start_margin(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
-        """The margin demanded of the first segment: λ, or less when an obstacle has already
-        come closer than λ — the arm must be able to move away (still certified free)."""
+        """The margin demanded of a first segment (it leaves the current state): λ, or less
+        when an obstacle has already come closer than λ, so that the arm can move away.
+        When the obstacle is already inside the fast model's conservative envelope (its
+        distance ≤ 0, while the meshes still have ≥ 4 mm, see robot.FAST_MODEL_MARGIN), the
+        first segment may only move away: no state on it may come any closer."""
         clearance = self.clearance(q, obstacles)
-        return min(self.config.margin, max(0.0, 0.5 * clearance))
+        if clearance > 0.0:
+            return min(self.config.margin, 0.5 * clearance)
+        return clearance - 1e-4
 
     # ---- goals ----------------------------------------------------------------------
     def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
@@ -253,14 +260,17 @@ class Planner:
                 active[self.graph.members[m]] = True
             active &= self.graph.safe
             path_ids = self._lazy_astar(query, active)
-            if path_ids is not None or searched == len(order):
+            if path_ids is not None or searched == len(order) or \
+                    time.perf_counter() >= query.deadline:
                 break
         t_search = time.perf_counter()
         result = PlanResult(False, "", goal_q=q_goal, subgraph=int(order[0]) if len(order) else -1,
                             searched_nodes=searched, lazy_iterations=query.iterations)
         if path_ids is None:
-            result.reason = (f"no certified route to the goal in the graph ({query.checked} edges "
-                             f"checked, {query.rejected} blocked); holding position")
+            budget = " within the time budget" if time.perf_counter() >= query.deadline else ""
+            result.reason = (f"no certified route to the goal in the graph{budget} "
+                             f"({query.checked} edges checked, {query.rejected} blocked); "
+                             "holding position")
         else:
             path = np.array([query.config(v) for v in path_ids])
             if self.config.shortcut:
@@ -305,7 +315,8 @@ class Planner:
         goal_links = dict(self._attach(query.q_goal, active))
         direct = float(np.linalg.norm(query.q_goal - query.q_start))
         heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
-        while query.iterations < self.config.max_lazy_iterations:
+        while query.iterations < self.config.max_lazy_iterations and \
+                time.perf_counter() < query.deadline:
             query.iterations += 1
             path = self._astar(query, active, start_links, goal_links, direct, heuristic)
             if path is None:
