@@ -13,6 +13,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 MODEL_FORMAT = "damon_ros-model"
 MODEL_VERSION = 1
 FILES = ("vae.safetensors", "graph.npz", "gmr.npz")
@@ -107,6 +109,15 @@ class DamonModel:
         except ValueError as exc:
             raise ModelError(str(exc)) from exc
         return cls(directory=directory, meta=meta, vae=vae, graph=graph, gmr=gmr)
+
+    def collision_probability(self, robot, q, obstacles) -> float:
+        """The GMR's p(collision | z) at the latent point of [q, closest obstacle point, flag]
+        (the paper's runtime signal; the planner's certification does not depend on it)."""
+        if not obstacles or self.gmr is None:
+            return 0.0
+        c = robot.clearance(q, obstacles)
+        row = np.concatenate([np.asarray(q, float), c.obstacle_point, [float(c.distance <= 0)]])
+        return float(self.gmr.collision_probability(self.vae.encode(row[None]))[0])
 
     @property
     def margin(self) -> float:

@@ -159,6 +159,13 @@ class Planner:
         self._safe_ids = np.flatnonzero(graph.safe)
         self._tree = cKDTree(graph.q[self._safe_ids])
 
+    def warm_up(self) -> None:
+        """Compile and cache the collision kernels now, not on the first goal."""
+        q = self.graph.q[self._safe_ids[0]]
+        probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
+        self.segment_free(q, q + 0.01, [probe], self.config.margin)
+        self.robot.distances(q[None], [probe])
+
     # ---- geometry -------------------------------------------------------------------
     def segment_free(self, q0: np.ndarray, q1: np.ndarray, obstacles: Sequence[Shape],
                      margin: float) -> bool:

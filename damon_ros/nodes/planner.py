@@ -1,0 +1,355 @@
+"""``planner`` node: goals in, certified joint trajectories out, re-routed on every threat.
+
+Thin adapter over :class:`damon_ros.runtime.ReactivePlanner`: it parses parameters and
+messages, keeps the latest joint state and obstacle table, and publishes what the runtime
+decides. Planning runs in its own mutually exclusive callback group, so joint states and
+obstacle markers keep arriving while a route is computed (MultiThreadedExecutor).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseStamped
+from nav_msgs.msg import Path
+from nav_msgs.srv import GetPlan
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from std_msgs.msg import ColorRGBA
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from visualization_msgs.msg import Marker, MarkerArray
+
+from damon_ros.nodes.common import declare, print_help, run, sec_to_stamp
+
+PARAMETERS = [
+    ("model_dir", "model directory ('' = the shipped models/default)"),
+    ("joint_prefix", "joint names are <prefix>joint1..7 (panda_ or fr3_)"),
+    ("limit_profile", "joint-limit profile: panda | fr3"),
+    ("base_frame", "frame of goals, obstacles and paths"),
+    ("margin", "λ: clearance (m) required on top of the conservative collision model"),
+    ("resolution", "rad between checked states along a path segment"),
+    ("velocity_scale / acceleration_scale / jerk_scale", "fractions of the limit profile"),
+    ("prediction_horizon_s", "obstacles are swept along their velocity this far ahead"),
+    ("monitor_rate_hz", "fixed-rate re-check of the remaining path"),
+    ("perception_timeout_s", "stop the arm when obstacle data is older (0 = off)"),
+    ("joint_state_timeout_s", "refuse to plan from joint states older than this"),
+    ("time_budget_s", "a route search gives up after this long"),
+    ("trajectory_topic", "where trajectories go (/fr3_arm_controller/joint_trajectory for "
+                         "franka_ros2's JTC)"),
+]
+
+
+class PlannerNode(Node):
+    def __init__(self) -> None:
+        super().__init__("planner")
+        from damon_ros.limits import joint_limits
+        from damon_ros.markers import ObstacleTable
+        from damon_ros.model import DamonModel
+        from damon_ros.planner import Planner, PlannerConfig
+        from damon_ros.robot import Robot
+        from damon_ros.runtime import ReactivePlanner, RuntimeConfig
+
+        p = self._parameters()
+        self.limits = joint_limits(p["limit_profile"], p["joint_prefix"])
+        self.model = DamonModel.load(p["model_dir"] or None)
+        self.robot = Robot("fast", p["limit_profile"])
+        config = PlannerConfig(margin=p["margin"], resolution=p["resolution"],
+                               velocity_scale=p["velocity_scale"],
+                               acceleration_scale=p["acceleration_scale"],
+                               jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"])
+        planner = Planner(self.model.graph, self.robot, self.limits, config)
+        planner.warm_up()
+        self.runtime = ReactivePlanner(planner, RuntimeConfig(
+            prediction_horizon_s=p["prediction_horizon_s"],
+            perception_timeout_s=p["perception_timeout_s"]),
+            risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes))
+        self.base_frame = p["base_frame"]
+        self.joint_state_timeout = p["joint_state_timeout_s"]
+        self.table = ObstacleTable(self.base_frame)
+        self.lock = threading.Lock()
+        self.q: np.ndarray | None = None
+        self.q_stamp = -math.inf
+        self.obstacle_stamp = -math.inf
+        self.obstacle_received = -math.inf
+        self.last_event = "idle"
+        self._vertex_tcp: np.ndarray | None = None
+
+        sensors = ReentrantCallbackGroup()
+        planning = MutuallyExclusiveCallbackGroup()
+        self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
+        self.pub_path = self.create_publisher(Path, "/damon/planned_path", 10)
+        self.pub_graph = self.create_publisher(MarkerArray, "/damon/graph_markers", 1)
+        self.pub_status = self.create_publisher(DiagnosticArray, "/damon/planner_status", 10)
+        self.create_subscription(JointState, "/joint_states", self._on_joint_state, 10,
+                                 callback_group=sensors)
+        self.create_subscription(MarkerArray, "/damon/obstacles", self._on_obstacles,
+                                 qos_profile_sensor_data, callback_group=planning)
+        self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
+                                 callback_group=planning)
+        self.create_service(GetPlan, "~/plan", self._on_plan_service, callback_group=planning)
+        self.create_service(Trigger, "~/stop", self._on_stop_service, callback_group=planning)
+        self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor, callback_group=planning)
+        self.create_timer(0.1, self._publish_status, callback_group=sensors)
+        self.get_logger().info(
+            f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
+            f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
+
+    def _parameters(self) -> dict:
+        d = {}
+        for name, default, doc, lo, hi in [
+            ("model_dir", "", "model directory ('' = shipped default)", None, None),
+            ("joint_prefix", "panda_", "joint name prefix", None, None),
+            ("limit_profile", "panda", "panda | fr3", None, None),
+            ("base_frame", "panda_link0", "frame of goals, obstacles and paths", None, None),
+            ("trajectory_topic", "/damon/joint_trajectory", "trajectory output", None, None),
+            ("margin", 0.01, "clearance λ (m) over the conservative model", 0.0, 0.5),
+            ("resolution", 0.02, "rad between checked states", 0.001, 0.1),
+            ("velocity_scale", 0.9, "fraction of the velocity limits", 0.01, 1.0),
+            ("acceleration_scale", 0.5, "fraction of the acceleration limits", 0.01, 1.0),
+            ("jerk_scale", 0.5, "fraction of the jerk limits", 0.01, 1.0),
+            ("prediction_horizon_s", 0.3, "obstacle sweep horizon (s)", 0.0, 5.0),
+            ("monitor_rate_hz", 20.0, "fixed-rate path re-check (Hz)", 0.5, 1000.0),
+            ("perception_timeout_s", 0.0, "stale obstacle data stops the arm (0 = off)", 0.0,
+             60.0),
+            ("joint_state_timeout_s", 0.5, "max joint-state age to plan from (s)", 0.001, 60.0),
+            ("time_budget_s", 0.25, "route search budget (s)", 0.001, 10.0),
+        ]:
+            kwargs = {} if lo is None else {"low": lo, "high": hi}
+            d[name] = declare(self, name, default, doc, **kwargs)
+        return d
+
+    # ---- inputs -----------------------------------------------------------------------
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_joint_state(self, msg: JointState) -> None:
+        try:
+            index = [list(msg.name).index(n) for n in self.limits.names]
+        except ValueError:
+            self.get_logger().warn(f"joint_states lack some of {list(self.limits.names)}; "
+                                   "ignored", throttle_duration_sec=5.0)
+            return
+        q = np.array([msg.position[i] for i in index]) if len(msg.position) == len(
+            msg.name) else None
+        if q is None or not np.all(np.isfinite(q)):
+            self.get_logger().warn("joint_states with missing or non-finite positions; "
+                                   "ignored", throttle_duration_sec=5.0)
+            return
+        with self.lock:
+            self.q, self.q_stamp = q, self._now()
+
+    def _current_q(self) -> np.ndarray | None:
+        with self.lock:
+            if self.q is None or self._now() - self.q_stamp > self.joint_state_timeout:
+                return None
+            return self.q.copy()
+
+    def _obstacles(self, now: float) -> list:
+        return [(o.shape, o.velocity) for o in self.table.obstacles(now)]
+
+    def _on_obstacles(self, msg: MarkerArray) -> None:
+        received = time.perf_counter()
+        now = self._now()
+        for error in self.table.apply(msg.markers, now):
+            self.get_logger().warn(f"obstacle marker refused: {error}",
+                                   throttle_duration_sec=2.0)
+        self.obstacle_received = now
+        self._step(received)
+
+    def _on_goal(self, msg: PoseStamped) -> None:
+        self._set_goal(msg, time.perf_counter())
+
+    def _set_goal(self, msg: PoseStamped, received: float):
+        from damon_ros.planner import PoseGoal
+
+        problem = self._goal_problem(msg)
+        if problem:
+            self.get_logger().error(f"goal refused: {problem}")
+            return None
+        q = self._current_q()
+        if q is None:
+            self.get_logger().error("goal refused: no fresh joint state (is /joint_states "
+                                    "published?)")
+            return None
+        o = msg.pose.orientation
+        goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
+                                  msg.pose.position.z]), np.array([o.x, o.y, o.z, o.w]))
+        event = self.runtime.set_goal(q, goal, self._obstacles(self._now()))
+        self._act(event, received, "goal")
+        return event
+
+    def _goal_problem(self, msg: PoseStamped) -> str:
+        frame = msg.header.frame_id
+        if frame not in ("", self.base_frame):
+            return f"frame_id '{frame}' is not the base frame '{self.base_frame}'"
+        p, o = msg.pose.position, msg.pose.orientation
+        values = [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
+        if not all(math.isfinite(v) for v in values):
+            return "pose holds NaN or inf"
+        norm = math.sqrt(o.x**2 + o.y**2 + o.z**2 + o.w**2)
+        if abs(norm - 1.0) > 1e-3:
+            return f"orientation is not a unit quaternion (norm {norm:.4f})"
+        return ""
+
+    # ---- the loop ---------------------------------------------------------------------
+    def _monitor(self) -> None:
+        self._step(time.perf_counter())
+
+    def _step(self, received: float) -> None:
+        q = self._current_q()
+        if q is None or self.runtime.state in ("idle", "reached"):
+            return
+        now = self._now()
+        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else 0.0
+        event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age)
+        self._act(event, received, "update")
+
+    def _act(self, event, received: float, cause: str) -> None:
+        if event is None:
+            return
+        log = self.get_logger()
+        if event.kind == "trajectory":
+            self._publish_trajectory(event.result)
+            latency = 1e3 * (time.perf_counter() - received)
+            what = "plan" if cause == "goal" else "re-route"
+            log.info(f"{what}: {len(event.result.path)} waypoints, "
+                     f"{event.result.trajectory.duration:.2f} s of motion, decided in "
+                     f"{event.latency_ms:.1f} ms ({latency:.1f} ms after the input)"
+                     + (f" — {event.reason}" if event.reason else ""))
+        elif event.kind == "hold":
+            self.pub_traj.publish(self._empty_trajectory())
+            log.warn(f"stopping the arm: {event.reason}")
+        elif event.kind == "reached":
+            log.info("goal reached")
+        elif event.kind == "refused":
+            log.error(f"goal refused: {event.reason}")
+        self.last_event = f"{event.kind}: {event.reason}" if event.reason else event.kind
+
+    # ---- outputs ----------------------------------------------------------------------
+    def _empty_trajectory(self) -> JointTrajectory:
+        msg = JointTrajectory()
+        msg.header.frame_id = self.base_frame
+        msg.joint_names = list(self.limits.names)
+        return msg
+
+    def _publish_trajectory(self, result) -> None:
+        traj = result.trajectory.resample(0.02)
+        msg = self._empty_trajectory()  # header.stamp zero: start on arrival
+        for t, q, qd, qdd in zip(traj.times, traj.positions, traj.velocities,
+                                 traj.accelerations, strict=True):
+            point = JointTrajectoryPoint(positions=q.tolist(), velocities=qd.tolist(),
+                                         accelerations=qdd.tolist())
+            sec = int(t)
+            point.time_from_start.sec, point.time_from_start.nanosec = sec, int(
+                round((t - sec) * 1e9)) % 1_000_000_000
+            msg.points.append(point)
+        self.pub_traj.publish(msg)
+        self.pub_path.publish(self._tcp_path(result.path))
+        self.pub_graph.publish(self._graph_markers(result))
+
+    def _tcp_path(self, path: np.ndarray) -> Path:
+        msg = Path()
+        msg.header.frame_id = self.base_frame
+        msg.header.stamp = self.get_clock().now().to_msg()
+        for a, b in zip(path, path[1:], strict=False):
+            for s in np.linspace(0.0, 1.0, 10, endpoint=False):
+                msg.poses.append(self._pose_stamped(a + s * (b - a)))
+        msg.poses.append(self._pose_stamped(path[-1]))
+        return msg
+
+    def _pose_stamped(self, q: np.ndarray) -> PoseStamped:
+        position, quat = self.robot.tcp_pose(q)
+        pose = PoseStamped()
+        pose.header.frame_id = self.base_frame
+        pose.pose = Pose()
+        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = map(float, position)
+        (pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z,
+         pose.pose.orientation.w) = map(float, quat)
+        return pose
+
+    def _graph_markers(self, result) -> MarkerArray:
+        """The searched subgraph's vertices (as TCP positions) and the certified route."""
+        graph = self.model.graph
+        if self._vertex_tcp is None:
+            self._vertex_tcp = np.array([self.robot.tcp_pose(q)[0] for q in graph.q])
+        nodes = graph.nearest_nodes(graph.nodes[max(result.subgraph, 0)],
+                                    k=max(1, result.searched_nodes))
+        members = np.concatenate([graph.members[m] for m in nodes])[:5000]
+        stamp = self.get_clock().now().to_msg()
+        vertices = Marker(ns="subgraph", id=0, type=Marker.POINTS, action=Marker.ADD)
+        vertices.header.frame_id, vertices.header.stamp = self.base_frame, stamp
+        vertices.scale.x = vertices.scale.y = 0.01
+        vertices.pose.orientation.w = 1.0
+        vertices.color = ColorRGBA(r=0.6, g=0.6, b=0.6, a=0.5)
+        vertices.points = [Point(x=float(a), y=float(b), z=float(c))
+                           for a, b, c in self._vertex_tcp[members]]
+        route = Marker(ns="route", id=0, type=Marker.LINE_STRIP, action=Marker.ADD)
+        route.header.frame_id, route.header.stamp = self.base_frame, stamp
+        route.scale.x = 0.01
+        route.pose.orientation.w = 1.0
+        route.color = ColorRGBA(r=0.1, g=0.8, b=0.2, a=1.0)
+        route.points = [p.pose.position for p in self._tcp_path(result.path).poses]
+        for m in (vertices, route):
+            m.lifetime = Duration(seconds=0).to_msg()
+        return MarkerArray(markers=[vertices, route])
+
+    def _publish_status(self) -> None:
+        rt = self.runtime
+        stats = rt.stats
+        latencies = stats.replan_latency_ms
+        level = {"holding": DiagnosticStatus.WARN}.get(rt.state, DiagnosticStatus.OK)
+        status = DiagnosticStatus(level=level, name="damon_ros/planner", hardware_id="damon",
+                                  message=f"{rt.state}: {self.last_event}")
+        values = {
+            "state": rt.state, "plans": stats.plans, "replans": stats.replans,
+            "holds": stats.holds, "escapes": stats.escapes, "obstacles": len(self.table),
+            "collision_probability": f"{rt.last_probability:.3f}",
+            "replan_latency_p50_ms": f"{np.median(latencies):.2f}" if latencies else "nan",
+        }
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = sec_to_stamp(self._now())
+        self.pub_status.publish(msg)
+
+    # ---- services ---------------------------------------------------------------------
+    def _on_plan_service(self, request: GetPlan.Request, response: GetPlan.Response):
+        event = self._set_goal(request.goal, time.perf_counter())
+        if event is not None and event.kind == "trajectory":
+            response.plan = self._tcp_path(event.result.path)
+        else:
+            response.plan = Path()
+            response.plan.header.frame_id = self.base_frame
+        return response
+
+    def _on_stop_service(self, request: Trigger.Request, response: Trigger.Response):
+        self._act(self.runtime.stop("stop requested on ~/stop"), time.perf_counter(), "stop")
+        response.success, response.message = True, "arm stopped; goal cleared"
+        return response
+
+
+def main(args=None) -> int:
+    argv = sys.argv if args is None else args
+    if "-h" in argv or "--help" in argv:
+        print_help("planner", "DAMON latent-graph planner: goal_pose in, certified "
+                   "JointTrajectory out, re-routed on every obstacle threat.", PARAMETERS)
+        return 0
+    from damon_ros.model import ModelError
+
+    try:
+        return run(PlannerNode, argv)
+    except ModelError as exc:
+        print(f"planner: cannot load the model: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
