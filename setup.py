@@ -9,6 +9,11 @@ PACKAGE = "damon_ros"
 # Executables that ``ros2 run damon_ros <name>`` resolves; each is also on PATH after pip install.
 CONSOLE_SCRIPTS = [
     "damon-ros = damon_ros.cli:main",
+    "planner = damon_ros.nodes.planner:main",
+    "controller = damon_ros.nodes.controller:main",
+    "mock_panda = damon_ros.nodes.mock_panda:main",
+    "mock_camera = damon_ros.nodes.mock_camera:main",
+    "tracker = damon_ros.nodes.tracker:main",
 ]
 
 setup(

@@ -12,6 +12,8 @@ import sys
 
 # name -> (module, function taking argv and returning an exit code, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
+    "demo": ("damon_ros.demo", "main",
+             "closed-loop demo: every node over real DDS, a goal, plots and a summary"),
     "clearance": (
         "damon_ros.clearance_report", "main",
         "load scenarios and print the robot's exact clearance to each obstacle",
@@ -21,6 +23,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "train": ("damon_ros.vae", "main", "train the VAE latent manifold on collected samples"),
     "build-graph": ("damon_ros.pipeline", "main",
                     "build the two-layer latent graph and fit the GMR into a model directory"),
+    "analyze": ("damon_ros.analysis", "main",
+                "GMR runtime model, graph-size sweep (N*) and the paper's plots"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",
