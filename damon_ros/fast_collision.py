@@ -4,7 +4,7 @@ Re-routing within a camera frame means certifying a whole path — hundreds of j
 against every obstacle — in about a millisecond. numpy spends most of that on small-array
 overhead, so the forward kinematics of the sphere centres and the sphere↔shape signed
 distances are compiled with numba (cached on disk after the first call). The maths is the
-same as :func:`damon_ros.robot._signed_distance`; tests compare the two.
+same as :func:`damon_ros.robot.signed_distance`; tests compare the two.
 
 Obstacles are packed as arrays: ``kind`` (0 sphere, 1 box, 2 cylinder, 3 bounding sphere of
 a point set), ``position`` (K, 3), ``rotation`` (K, 3, 3) and ``params`` (K, 3) — sphere
@@ -67,11 +67,29 @@ def _signed(px, py, pz, kind, pos, rot, params, k):
     return math.sqrt(orad * orad + oax * oax) + min(max(radial, axial), 0.0)
 
 
+def pack_robot(rotations: np.ndarray, translations: np.ndarray, joints: np.ndarray,
+               centers: np.ndarray, radii: np.ndarray) -> tuple:
+    """Kernel arguments for a sphere model: the joint placements, the spheres sorted by the
+    joint that carries them, and one bounding sphere per joint group (a group whose bound
+    keeps the margin needs none of its spheres checked — most of the arm, most of the time)."""
+    order = np.argsort(joints, kind="stable")
+    sj, sc, sr = joints[order].astype(np.int64), centers[order], radii[order]
+    groups = np.unique(sj)
+    start = np.searchsorted(sj, groups, side="left").astype(np.int64)
+    end = np.searchsorted(sj, groups, side="right").astype(np.int64)
+    gc = np.array([sc[a:b].mean(axis=0) for a, b in zip(start, end, strict=True)])
+    gr = np.array([np.max(np.linalg.norm(sc[a:b] - gc[i], axis=1) + sr[a:b])
+                   for i, (a, b) in enumerate(zip(start, end, strict=True))])
+    return (np.ascontiguousarray(rotations, dtype=float),
+            np.ascontiguousarray(translations, dtype=float), sj, np.ascontiguousarray(sc),
+            np.ascontiguousarray(sr), groups.astype(np.int64), start, end,
+            np.ascontiguousarray(gc), np.ascontiguousarray(gr))
+
+
 @njit(cache=True)
-def _centers(q, jr, jp, sj, sc, out, fr, fp):
-    """Sphere centres of one configuration into ``out`` (S, 3); every joint turns about z.
-    ``fr``/``fp`` are scratch for the frame rotations/positions (explicit loops: numba's
-    small matrix products call BLAS and cost more than the arithmetic)."""
+def _frames(q, jr, jp, fr, fp):
+    """Rotations/positions of every joint frame (explicit loops: numba's small matrix
+    products call BLAS and cost more than the arithmetic); every joint turns about z."""
     for a in range(3):
         fp[0, a] = 0.0
         for b in range(3):
@@ -87,67 +105,86 @@ def _centers(q, jr, jp, sj, sc, out, fr, fp):
             fr[i + 1, a, 0] = m0 * c + m1 * s
             fr[i + 1, a, 1] = m1 * c - m0 * s
             fr[i + 1, a, 2] = m2
-    for s_i in range(sc.shape[0]):
-        j = sj[s_i]
-        for a in range(3):
-            out[s_i, a] = (fp[j, a] + fr[j, a, 0] * sc[s_i, 0] + fr[j, a, 1] * sc[s_i, 1]
-                           + fr[j, a, 2] * sc[s_i, 2])
 
 
 @njit(cache=True)
-def _state_distance(q, jr, jp, sj, sc, sr, kind, pos, rot, params, buf):
-    n = jr.shape[0] + 1
-    _centers(q, jr, jp, sj, sc, buf, np.empty((n, 3, 3)), np.empty((n, 3)))
-    best = np.inf
-    for k in range(kind.shape[0]):
-        for s_i in range(sc.shape[0]):
-            d = _signed(buf[s_i, 0], buf[s_i, 1], buf[s_i, 2], kind, pos, rot, params, k) - sr[s_i]
-            if d < best:
-                best = d
+def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos, rot, params,
+                    fr, fp):
+    """min(signed distance, limit) of one configuration: groups whose bounding sphere is at
+    least ``limit`` away are skipped (the signed distance is 1-Lipschitz, so the bound is
+    a true lower bound of every sphere in the group)."""
+    _frames(q, jr, jp, fr, fp)
+    best = limit
+    for g in range(gj.shape[0]):
+        j = gj[g]
+        x = fp[j, 0] + fr[j, 0, 0] * gc[g, 0] + fr[j, 0, 1] * gc[g, 1] + fr[j, 0, 2] * gc[g, 2]
+        y = fp[j, 1] + fr[j, 1, 0] * gc[g, 0] + fr[j, 1, 1] * gc[g, 1] + fr[j, 1, 2] * gc[g, 2]
+        z = fp[j, 2] + fr[j, 2, 0] * gc[g, 0] + fr[j, 2, 1] * gc[g, 1] + fr[j, 2, 2] * gc[g, 2]
+        for k in range(kind.shape[0]):
+            if _signed(x, y, z, kind, pos, rot, params, k) - gr[g] >= best:
+                continue
+            for s_i in range(gs[g], ge[g]):
+                cx = (fp[j, 0] + fr[j, 0, 0] * sc[s_i, 0] + fr[j, 0, 1] * sc[s_i, 1]
+                      + fr[j, 0, 2] * sc[s_i, 2])
+                cy = (fp[j, 1] + fr[j, 1, 0] * sc[s_i, 0] + fr[j, 1, 1] * sc[s_i, 1]
+                      + fr[j, 1, 2] * sc[s_i, 2])
+                cz = (fp[j, 2] + fr[j, 2, 0] * sc[s_i, 0] + fr[j, 2, 1] * sc[s_i, 1]
+                      + fr[j, 2, 2] * sc[s_i, 2])
+                d = _signed(cx, cy, cz, kind, pos, rot, params, k) - sr[s_i]
+                if d < best:
+                    best = d
     return best
 
 
 @njit(cache=True)
-def batch_distances(Q, jr, jp, sj, sc, sr, kind, pos, rot, params):
+def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos, rot, params):
     """Minimum signed distance of each configuration of Q (N, 7) to the packed obstacles."""
     out = np.empty(Q.shape[0])
-    buf = np.empty((sc.shape[0], 3))
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
     for n in range(Q.shape[0]):
-        out[n] = _state_distance(Q[n], jr, jp, sj, sc, sr, kind, pos, rot, params, buf)
+        out[n] = _distance_below(Q[n], np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind,
+                                 pos, rot, params, fr, fp)
     return out
 
 
 @njit(cache=True)
-def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, kind, pos, rot, params):
+def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos,
+                  rot, params):
     """True when all ``steps + 1`` evenly spaced states from q0 to q1 keep ``margin``.
 
-    States are visited in a coarse-to-fine (van der Corput) order so a blocked segment is
-    usually found after a few states."""
-    buf = np.empty((sc.shape[0], 3))
+    States are visited coarse to fine (ends, middle, quarters, ...) so a blocked segment is
+    usually found after a few states; each state stops at the first sphere within margin."""
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
     q = np.empty(q0.shape[0])
+    order = np.empty(steps + 1, np.int64)
     visited = np.zeros(steps + 1, np.bool_)
+    n = 0
     for index in (0, steps):
-        visited[index] = True
-        for a in range(q0.shape[0]):
-            q[a] = q0[a] + (q1[a] - q0[a]) * index / steps
-        if _state_distance(q, jr, jp, sj, sc, sr, kind, pos, rot, params, buf) <= margin:
-            return False
+        if not visited[index]:
+            visited[index] = True
+            order[n] = index
+            n += 1
     stride = steps
     while stride > 1:
         half = stride // 2
         for index in range(half, steps, stride):
-            if visited[index]:
-                continue
-            visited[index] = True
-            for a in range(q0.shape[0]):
-                q[a] = q0[a] + (q1[a] - q0[a]) * index / steps
-            if _state_distance(q, jr, jp, sj, sc, sr, kind, pos, rot, params, buf) <= margin:
-                return False
+            if not visited[index]:
+                visited[index] = True
+                order[n] = index
+                n += 1
         stride = half
     for index in range(steps + 1):  # strides that were not powers of two leave gaps
         if not visited[index]:
-            for a in range(q0.shape[0]):
-                q[a] = q0[a] + (q1[a] - q0[a]) * index / steps
-            if _state_distance(q, jr, jp, sj, sc, sr, kind, pos, rot, params, buf) <= margin:
-                return False
+            order[n] = index
+            n += 1
+    for i in range(n):
+        for a in range(q0.shape[0]):
+            q[a] = q0[a] + (q1[a] - q0[a]) * order[i] / steps
+        # the limit sits just above the margin: "nothing below it" is distinguishable from
+        # "a sphere exactly at the margin" (which blocks)
+        if _distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos,
+                           rot, params, fr, fp) <= margin:
+            return False
     return True

@@ -5,17 +5,18 @@ Two collision models, both from ``example-robot-data``:
 - ``mesh`` — the collision meshes of ``panda.urdf``: ground truth, used to label data, to
   certify and to score contact. Every Panda collision mesh is convex (its convex hull has
   the same vertices and volume), so each is loaded as a coal ``Convex``: the same geometry,
-  but GJK/EPA gives exact distances, penetration depth and witness points in a few µs
-  instead of a BVH traversal.
+  but GJK/EPA gives exact distances, penetration depth and witness points in a few µs per
+  pair instead of a BVH traversal.
 - ``fast`` — the sphere/cylinder model of ``panda_collision.urdf``, rebuilt as spheres (each
-  cylinder is covered by overlapping spheres whose radius accounts for their spacing) so
-  that whole batches of configurations are checked with a handful of numpy calls. Every
-  sphere is inflated by :data:`FAST_MODEL_MARGIN`, so "fast says free" implies "meshes say
-  free" (see the constant for the measurement).
+  cylinder covered by overlapping spheres) and checked in batches by the compiled kernels of
+  :mod:`damon_ros.fast_collision`. That model does NOT contain the meshes everywhere (its
+  forearm misses the link-5 mesh by 3 cm), so spheres first grow until they contain every
+  mesh surface point (:func:`containment_inflation`), then all grow by
+  :data:`FAST_MODEL_MARGIN`: "fast says free" implies "meshes say free".
 
 Fingers are locked at :data:`FINGER_OPENING` m each (fully open: the largest, hence most
 conservative, hand). Joint limits come from :mod:`damon_ros.limits`; the kinematics are the
-Panda's for both limit profiles.
+Panda's for both limit profiles. No rclpy here.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import time
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 
 import coal
@@ -44,16 +45,20 @@ SPHERE_SPACING = 0.04
 """Largest gap (m) between the spheres that cover one cylinder of the fast model; each such
 sphere grows by ``hypot(r, gap / 2) - r`` (≤ 2.2 mm for the Panda's 9 cm links) to cover
 the cylinder between sphere centres."""
-FAST_MODEL_MARGIN = 0.005
-"""Inflation (m) of every fast-model sphere. Measured with ``damon-ros bench-robot --margin
-10000`` (10,000 random configurations, each with a random sphere or box whose surface lies
-within 0.15 m of a point of the arm): the un-inflated sphere model's distance never exceeded
-the mesh distance — the largest excess was -0.0076 m, i.e. the spheres contain every mesh
-with at least 7.6 mm to spare, and "fast > 0 ⇒ mesh > 0" held on all samples. The 5 mm
-inflation is a pure reserve for tessellation and numeric error. The price: the fast model's
-distance is on median 2.9 cm below the mesh distance (it is conservative, not tight)."""
-SELF_MARGIN = 0.0
-"""Gap (m) demanded between fast-model spheres of links that may touch (self-collision)."""
+FAST_MODEL_MARGIN = 0.0065
+"""Growth (m) of every fast-model sphere beyond containing the meshes. Containment is checked
+on surface points at most 2.3 mm from any mesh point (:data:`SURFACE_STEP`), so wherever the
+fast distance is ≥ 0 the meshes are ≥ 4 mm from the obstacle by construction. Measured with
+``damon-ros bench-robot --margin 10000`` (10,000 random configurations, each with a random
+sphere or box near a random surface point of the arm; the meshes touch it in 4,600): the
+URDF's spheres as they are exceed the mesh distance by up to 8.5 mm and say "free" (+8.6 mm)
+where the meshes touch; after the containment growth and before this margin, fast − mesh
+is at most −1.3 mm (median −28 mm) where apart and fast ≤ −2.5 mm where the meshes touch:
+"fast > 0 ⇒ mesh > 0" held on every sample, with this margin as reserve."""
+SURFACE_STEP = 0.004
+"""Largest edge (m) of the triangles the mesh surfaces are cut into to check that the fast
+model's spheres contain them; every surface point is within ``SURFACE_STEP / √3`` (2.3 mm)
+of a checked point, which :data:`FAST_MODEL_MARGIN` covers."""
 
 
 @cache
@@ -245,6 +250,16 @@ class _Sdf:
         return center + self.rt.T @ q
 
 
+def signed_distance(points: np.ndarray, shape: Shape) -> np.ndarray:
+    """Signed distance (negative inside) from points (..., 3) to an obstacle, with the fast
+    model's conventions (a point set as its bounding sphere); the numpy reference for
+    :mod:`damon_ros.fast_collision`."""
+    points = np.asarray(points, dtype=float)
+    if points.shape[-1] != 3:
+        raise ValueError(f"points must be (..., 3), got shape {points.shape}")
+    return _Sdf(shape)(points.reshape(-1, 3).T).reshape(points.shape[:-1])
+
+
 # ---- batched forward kinematics ---------------------------------------------------------
 class Chain:
     """Forward kinematics of many configurations at once.
@@ -307,50 +322,124 @@ class Chain:
 class SphereModel:
     """The fast collision model: spheres fixed to joint frames. Batches go through the
     compiled kernels of :mod:`damon_ros.fast_collision` (``kernel_args``); single states and
-    witness points through :class:`Chain` and numpy."""
+    witness points through :class:`Chain` and numpy.
 
-    def __init__(self, model: pin.Model, geom: pin.GeometryModel, inflate: float,
+    Each sphere grows by its ``inflation`` (what it takes for the spheres to contain the
+    meshes, :func:`panda_inflation`), then all grow by ``margin``."""
+
+    def __init__(self, model: pin.Model, geom: pin.GeometryModel, margin: float,
+                 inflation: np.ndarray | None = None,
                  spacing: float = SPHERE_SPACING) -> None:
         centers, radii, joints, links = [], [], [], []
         for obj in geom.geometryObjects:
             for c, r in _cover(obj.geometry, obj.placement, spacing):
                 centers.append(c)
-                radii.append(r + inflate)
+                radii.append(r)
                 joints.append(obj.parentJoint)
                 links.append(_link_name(model, obj))
-        self.inflate = inflate
-        self.centers, self.radii = np.array(centers), np.array(radii)
-        self.joints, self.links = np.array(joints), links
+        self.centers, self.joints, self.links = np.array(centers), np.array(joints), links
         self.chain = Chain(model)
         self.block = Chain.block(self.joints, self.centers)
-        self.kernel_args = (
-            np.ascontiguousarray([model.jointPlacements[j].rotation for j in range(1, 8)]),
-            np.ascontiguousarray([model.jointPlacements[j].translation for j in range(1, 8)]),
-            self.joints.astype(np.int64), np.ascontiguousarray(self.centers),
-            np.ascontiguousarray(self.radii))
-        self._self_pairs()
+        self.raw_radii = np.array(radii)
+        self.inflation = np.zeros(len(radii)) if inflation is None else inflation
+        if self.inflation.shape != self.raw_radii.shape:
+            raise ValueError(f"inflation needs {len(radii)} values, got {self.inflation.shape}")
+        self.margin = margin
+        self.radii = self.raw_radii + self.inflation + margin
+        self.kernel_args = fast_collision.pack_robot(
+            np.array([model.jointPlacements[j].rotation for j in range(1, 8)]),
+            np.array([model.jointPlacements[j].translation for j in range(1, 8)]),
+            self.joints, self.centers, self.radii)
 
-    def _self_pairs(self) -> None:
-        """Sphere pairs on links that may touch: not on the same joint (rigidly attached)
-        and not an SRDF-disabled pair."""
-        disabled = disabled_link_pairs()
-        a, b = np.triu_indices(len(self.links), 1)
-        keep = [self.joints[i] != self.joints[j]
-                and frozenset((self.links[i], self.links[j])) not in disabled
-                for i, j in zip(a, b, strict=True)]
-        self.pair_a, self.pair_b = a[keep], b[keep]
+    def distances(self, Q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
+        """(N,) minimum signed distance of configurations (N, 7) to the obstacles."""
+        return fast_collision.batch_distances(np.ascontiguousarray(Q, dtype=float),
+                                              *self.kernel_args,
+                                              *fast_collision.pack_obstacles(obstacles))
+
+    def segment_clear(self, q0: np.ndarray, q1: np.ndarray, steps: int,
+                      obstacles: Sequence[Shape], margin: float) -> bool:
+        """All ``steps + 1`` evenly spaced states q0→q1 keep more than ``margin``."""
+        return bool(fast_collision.segment_clear(q0, q1, steps, margin, *self.kernel_args,
+                                                 *fast_collision.pack_obstacles(obstacles)))
 
     def world_centers(self, Q: np.ndarray) -> np.ndarray:
         """Sphere centres (N, S, 3) of configurations (N, 7)."""
         T = self.chain.transforms(Q)
         return Chain.points(T, self.block).reshape(3, len(Q), -1).transpose(1, 2, 0)
 
-    def self_gaps(self, Q: np.ndarray) -> np.ndarray:
-        """(N,) smallest gap between the un-inflated spheres of links that may touch."""
-        c = self.world_centers(Q)
-        a, b = self.pair_a, self.pair_b
-        gap = np.linalg.norm(c[:, a] - c[:, b], axis=-1) - (self.radii[a] + self.radii[b])
-        return gap.min(axis=1) + 2.0 * self.inflate
+    def rigid_with(self, joint: int, n_probe: int = 6) -> np.ndarray:
+        """Indices of the spheres that stay fixed in the frame of ``joint`` in every
+        configuration: those on that joint, and those of neighbouring joints that sit on the
+        axes between (found numerically on random configurations)."""
+        Q = np.random.default_rng(0).uniform(-2.5, 2.5, (n_probe, 7))
+        T = self.chain.transforms(Q).reshape(3, n_probe, 8, 4)
+        R, p = T[:, :, joint, :3], T[:, :, joint, 3]
+        world = Chain.points(self.chain.transforms(Q), self.block).reshape(3, n_probe, -1)
+        local = np.einsum("inj,ins->njs", R, world - p[:, :, None])
+        return np.flatnonzero(local.std(axis=0).max(axis=0) < 1e-9)
+
+
+def surface_points(g: coal.CollisionGeometry, step: float = SURFACE_STEP) -> np.ndarray:
+    """Points on the surface of a convex geometry (its own frame), no triangle edge between
+    them longer than ``step``: every vertex and a barycentric grid on every hull face."""
+    from scipy.spatial import ConvexHull
+
+    v = local_vertices(g)
+    tris = v[ConvexHull(v).simplices]
+    edges = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+    out = [v]
+    for k in np.unique(np.maximum(1, np.ceil(edges / step).astype(int))):
+        i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+        keep = i + j <= k
+        a, b = i[keep] / k, j[keep] / k
+        t = tris[np.maximum(1, np.ceil(edges / step).astype(int)) == k]
+        pts = (t[:, None, 0] + a[None, :, None] * (t[:, None, 1] - t[:, None, 0])
+               + b[None, :, None] * (t[:, None, 2] - t[:, None, 0]))
+        out.append(pts.reshape(-1, 3))
+    return np.vstack(out)
+
+
+def containment_inflation(spheres: SphereModel, meshes: pin.GeometryModel) -> np.ndarray:
+    """Per-sphere growth (m) that makes the spheres contain every mesh surface point.
+
+    ``panda_collision.urdf`` does not contain the meshes everywhere (its forearm cylinder
+    misses the link-5 mesh by 3 cm, the base by 1 cm), so each surface point is given to the
+    sphere, rigid with its link, that needs the least growth to reach it, and each sphere
+    grows by the most any of its points needs. Measured: 19 of the 78 spheres grow — up to
+    30 mm about the forearm and wrist (links 5, 6), up to 11 mm about the base and shoulder
+    (links 0, 1) and at most 5 mm elsewhere."""
+    grow = np.zeros(len(spheres.raw_radii))
+    for obj in meshes.geometryObjects:
+        idx = spheres.rigid_with(obj.parentJoint)
+        m = obj.placement
+        pts = surface_points(obj.geometry) @ m.rotation.T + m.translation
+        local = _rigid_local(spheres, obj.parentJoint, idx)
+        sq = (pts * pts).sum(axis=1)[:, None] - 2.0 * pts @ local.T + (local * local).sum(axis=1)
+        need = np.sqrt(np.maximum(sq, 0.0)) - spheres.raw_radii[idx]
+        best = need.argmin(axis=1)
+        np.maximum.at(grow, idx[best], need[np.arange(len(pts)), best])
+    return grow
+
+
+@cache
+def panda_inflation(spacing: float = SPHERE_SPACING) -> np.ndarray:
+    """:func:`containment_inflation` of the Panda's sphere model against its meshes (computed
+    once per process, ~0.3 s)."""
+    model, geom = load_arm("panda_collision.urdf")
+    meshes = _convex_meshes(*load_arm("panda.urdf"))
+    grow = containment_inflation(SphereModel(model, geom, 0.0, spacing=spacing), meshes)
+    grow.flags.writeable = False
+    return grow
+
+
+def _rigid_local(spheres: SphereModel, joint: int, idx: np.ndarray) -> np.ndarray:
+    """Centres of the spheres ``idx`` (rigid with ``joint``) in that joint's frame."""
+    q = np.zeros((1, 7))
+    T = spheres.chain.transforms(q).reshape(3, 8, 4)
+    R, p = T[:, joint, :3], T[:, joint, 3]
+    world = Chain.points(spheres.chain.transforms(q), spheres.block[:, idx])
+    return ((world - p[:, None]).T @ R)
 
 
 def _cover(g: coal.CollisionGeometry, placement: pin.SE3,
@@ -380,7 +469,13 @@ def _reach_bound(model: pin.Model, tcp: int) -> tuple[np.ndarray, float]:
 
 
 class Robot:
-    """Panda kinematics, IK and collision queries on the chosen collision model."""
+    """Panda kinematics, IK and collision queries on the chosen collision model.
+
+    ``collision`` picks the model that :meth:`clearance`, :meth:`distances`,
+    :meth:`in_collision`, :meth:`segment_free` and :meth:`path_free` use: ``"mesh"`` (exact)
+    or ``"fast"`` (conservative spheres). Kinematics, :meth:`ik` and the self-collision
+    checks are the same for both (self-collision is always on the exact meshes, with the
+    SRDF's disabled pairs). ``profile`` picks the joint limits (``"panda"`` or ``"fr3"``)."""
 
     def __init__(self, collision: str = "fast", profile: str = "panda",
                  fast_margin: float = FAST_MODEL_MARGIN) -> None:
@@ -399,22 +494,29 @@ class Robot:
         self.tcp_id = model.getFrameId(TCP_FRAME)
         if self.tcp_id >= model.nframes:
             raise ValueError(f"the Panda description has no {TCP_FRAME} frame")
-        fast_model, fast_geom = load_arm("panda_collision.urdf")
-        self.spheres = SphereModel(fast_model, fast_geom, fast_margin)
+        self.fast_margin = fast_margin
         self.shoulder, self.reach = _reach_bound(model, self.tcp_id)
         self._request = coal.DistanceRequest()
         self._request.enable_signed_distance = True
 
+    @cached_property
+    def spheres(self) -> SphereModel:
+        """The fast model, built on first use (a mesh-only robot never needs it)."""
+        model, geom = load_arm("panda_collision.urdf")
+        return SphereModel(model, geom, self.fast_margin, inflation=panda_inflation())
+
     def _mesh_bounds(self) -> None:
-        """Bounding sphere (centre in the geometry frame, radius) of each mesh, to skip GJK
-        on meshes that cannot be the closest."""
-        self._mesh_centers, self._mesh_radii = [], []
+        """Bounding sphere of each mesh (centre fixed in its joint's frame), to skip GJK on
+        meshes that cannot be the closest."""
+        centers, radii, joints = [], [], []
         for obj in self.mesh_geom.geometryObjects:
             v = local_vertices(obj.geometry)
             c = 0.5 * (v.min(axis=0) + v.max(axis=0))
-            self._mesh_centers.append(c)
-            self._mesh_radii.append(float(np.max(np.linalg.norm(v - c, axis=1))))
-        self._mesh_radii = np.array(self._mesh_radii)
+            centers.append(obj.placement.act(c))
+            radii.append(float(np.max(np.linalg.norm(v - c, axis=1))))
+            joints.append(obj.parentJoint)
+        self._mesh_block = Chain.block(np.array(joints), np.array(centers))
+        self._mesh_radii = np.array(radii)
 
     # ---- kinematics -------------------------------------------------------------------
     @staticmethod
@@ -573,8 +675,9 @@ class Robot:
 
     def _mesh_clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> Clearance:
         pin.updateGeometryPlacements(self.model, self.data, self.mesh_geom, self.mesh_data, q)
-        oMg = self.mesh_data.oMg
-        centers = np.array([oMg[i].act(c) for i, c in enumerate(self._mesh_centers)])
+        oMg, oMi = self.mesh_data.oMg, self.data.oMi
+        joints = np.hstack([oMi[j].homogeneous[:3] for j in range(8)])
+        centers = (joints @ self._mesh_block).T
         objs = self.mesh_geom.geometryObjects
         best = (math.inf, None, None, "", -1)
         for k, shape in enumerate(obstacles):
@@ -612,8 +715,7 @@ class Robot:
             return np.full(len(Q), math.inf)
         if self.collision == "mesh":
             return np.array([self._mesh_clearance(q, obstacles).distance for q in Q])
-        return fast_collision.batch_distances(Q, *self.spheres.kernel_args,
-                                              *fast_collision.pack_obstacles(obstacles))
+        return self.spheres.distances(Q, obstacles)
 
     def in_collision(self, q, obstacles: Sequence[Shape], margin: float = 0.0) -> bool:
         """True when the robot comes within ``margin`` of an obstacle (touching counts)."""
@@ -626,11 +728,6 @@ class Robot:
         q = self._check_q(q)
         return bool(pin.computeCollisions(self.model, self.data, self.mesh_geom, self.mesh_data,
                                           q, True))
-
-    def self_collision_fast(self, Q) -> np.ndarray:
-        """Conservative self-collision for a batch (N, 7): True wherever the un-inflated
-        spheres of links that may touch overlap (they contain the meshes)."""
-        return self.spheres.self_gaps(self._check_batch(Q)) <= 0.0
 
     # ---- segments ---------------------------------------------------------------------
     @staticmethod
@@ -652,8 +749,7 @@ class Robot:
         if self.collision == "mesh":
             Q = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)
             return all(self._mesh_clearance(q, obstacles).distance > margin for q in Q)
-        return bool(fast_collision.segment_clear(q0, q1, n, margin, *self.spheres.kernel_args,
-                                                 *fast_collision.pack_obstacles(obstacles)))
+        return self.spheres.segment_clear(q0, q1, n, obstacles, margin)
 
     def path_free(self, path, obstacles: Sequence[Shape], margin: float = 0.0,
                   resolution: float = 0.02) -> bool:
