@@ -50,6 +50,7 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 
 DATASET_FORMAT = "damon_ros-dataset"
 DATASET_VERSION = 1
@@ -66,11 +67,15 @@ COLUMNS = (
 SHOULDER = np.array([0.0, 0.0, 0.333])
 ARM_REACH = 0.855
 HAND_LENGTH = 0.1
+CHAIN_FRAMES = tuple(f"panda_link{i}" for i in range(2, 9)) + ("panda_hand", "panda_hand_tcp")
 SKELETON_STEP = 0.03  # m between aim points along the link-frame polyline
-LINK_RADIUS = 0.06  # rough radius of the Panda's links about their frame axes (aim only)
-AIM_SPREAD = 0.12  # contact-seeking aims at centre distances in LINK_RADIUS + radius ± this
-AIM_PATIENCE = 20  # contact-seeking misses before a node gets the closest approach
-MAX_TRIES = 200  # configurations tried for one sample before giving up (never reached)
+AIM_MAX = 0.18
+"""Contact-seeking aims a skeleton point at a distance uniform in [0, AIM_MAX] from the node:
+the Panda's links are ~6 cm about that axis, so with a 3 cm obstacle touching is ~0.09 m, and
+the aims are symmetric about contact (measured: about half of these samples collide)."""
+BATCH = 16  # candidate postures per contact-seeking sample (batched kinematics)
+AIM_PATIENCE = 2  # contact-seeking batches before a node gets the best closest approach
+MAX_BATCHES = 50  # candidate batches for one sample before giving up (never reached)
 OCCUPIED_PROBES = 32  # random configurations that decide a node is always occupied
 
 
@@ -148,6 +153,43 @@ def _always_occupied(points: np.ndarray, robot=None) -> np.ndarray:
 
 
 # ---- sampling (inside a worker) -------------------------------------------------------
+class ArmChain:
+    """Batched forward kinematics of the frames link2 … link8, hand and TCP — the arm's
+    axis — in numpy: every Panda joint turns about its own z axis, so the chain is fixed
+    placements and z rotations. Used only to aim contact-seeking samples and to test the
+    table plane; one call handles a whole batch of candidate postures."""
+
+    def __init__(self, model: pin.Model, frames: tuple[str, ...] = CHAIN_FRAMES) -> None:
+        for j in range(1, model.njoints):
+            if model.joints[j].shortname() != "JointModelRZ" or model.parents[j] != j - 1:
+                raise ValueError("ArmChain needs a serial chain of z-revolute joints")
+        self.placements = [(model.jointPlacements[j].rotation.copy(),
+                            model.jointPlacements[j].translation.copy())
+                           for j in range(1, model.njoints)]
+        ids = [model.getFrameId(f) for f in frames]
+        if any(i >= model.nframes for i in ids):
+            raise ValueError(f"the robot model lacks one of the frames {frames}")
+        self.frame_joint = [model.frames[i].parentJoint for i in ids]
+        self.frame_offset = [model.frames[i].placement.translation.copy() for i in ids]
+
+    def positions(self, Q: np.ndarray) -> np.ndarray:
+        """Frame positions (N, K, 3) for configurations Q (N, 7)."""
+        n = len(Q)
+        rot, pos = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3))
+        joint_pose = [(rot, pos)]
+        c, s = np.cos(Q), np.sin(Q)
+        for i, (m_rot, m_pos) in enumerate(self.placements):
+            pos = pos + rot @ m_pos
+            r = rot @ m_rot
+            ci, si = c[:, i, None], s[:, i, None]
+            rot = np.stack([r[:, :, 0] * ci + r[:, :, 1] * si, r[:, :, 1] * ci - r[:, :, 0] * si,
+                            r[:, :, 2]], axis=2)
+            joint_pose.append((rot, pos))
+        return np.stack([joint_pose[j][1] + joint_pose[j][0] @ off
+                         for j, off in zip(self.frame_joint, self.frame_offset, strict=True)],
+                        axis=1)
+
+
 class Sampler:
     """Draws labelled samples for one chunk at a time. Holds the robot model, so it is built
     inside each worker process (pinocchio/coal objects are never shared across processes)."""
@@ -165,6 +207,9 @@ class Sampler:
         self.node_rho = np.hypot(self.nodes[:, 0], self.nodes[:, 1])
         self.node_phi = np.arctan2(self.nodes[:, 1], self.nodes[:, 0])
         self.rejected = {"self_collision": 0, "below_floor": 0, "unreachable_aim": 0}
+        self.chain = ArmChain(self.robot.model)
+        self.skeleton_weights = _polyline_weights(self.chain.positions(np.zeros((1, 7)))[0],
+                                                  SKELETON_STEP)
 
     def chunk(self, index: int, size: int) -> dict[str, np.ndarray]:
         """The ``size`` samples of chunk ``index``: a pure function of (config, index)."""
@@ -173,76 +218,122 @@ class Sampler:
         node = rng.integers(0, len(self.nodes), size).astype(np.int32)
         seek = rng.random(size) < self.config.near_contact_share
         q = np.empty((size, 7))
-        distance = np.empty(size)
-        for i in range(size):
-            q[i] = self.contact_seeking(rng, int(node[i])) if seek[i] else self.uniform(rng)
-            distance[i] = self.robot.clearance(q[i], [self.obstacles[node[i]]]).distance
+        q[~seek] = self.uniform(rng, int((~seek).sum()))
+        postures, aims, chains = self.candidates(rng, int(seek.sum()))
+        for j, i in enumerate(np.flatnonzero(seek)):
+            q[i] = self.contact_seeking(rng, int(node[i]), postures[j], aims[j], chains[j])
+        distance = np.array([self.robot.clearance(qi, [self.obstacles[m]]).distance
+                             for qi, m in zip(q, node, strict=True)])
         return {"q": q, "point": self.nodes[node], "collision": distance <= 0.0,
                 "near": distance <= self.config.margin, "distance": distance, "node": node,
                 "source": seek.astype(np.int8)}
 
-    def uniform(self, rng: np.random.Generator) -> np.ndarray:
-        """A valid configuration drawn uniformly within the joint limits."""
-        for _ in range(MAX_TRIES):
-            q = rng.uniform(self.lower, self.upper)
-            if self.valid(q):
-                return q
-        raise RuntimeError(f"no valid configuration in {MAX_TRIES} uniform draws")
+    def uniform(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``n`` valid configurations (n, 7) drawn uniformly within the joint limits: in
+        order, the candidates above the table and free of self-collision."""
+        out: list[np.ndarray] = []
+        for _ in range(MAX_BATCHES):
+            if len(out) == n:
+                break
+            Q = rng.uniform(self.lower, self.upper, (int(1.3 * (n - len(out))) + 8, 7))
+            for q, above in zip(Q, self.above_floor(Q), strict=True):
+                if len(out) == n:
+                    break
+                if not above:
+                    self.rejected["below_floor"] += 1
+                elif self.robot.self_collision(q):
+                    self.rejected["self_collision"] += 1
+                else:
+                    out.append(q)
+        if len(out) < n:
+            raise RuntimeError(f"only {len(out)} of {n} valid uniform configurations")
+        return np.array(out).reshape(n, 7)
 
-    def contact_seeking(self, rng: np.random.Generator, node: int) -> np.ndarray:
-        """A valid configuration whose arm passes close to ``node``: joints 2–7 uniform, joint 1
-        turned so that a random skeleton point lies a random aim distance from the node. A
-        node few postures can reach (the edge of the workspace) gets, after
-        ``AIM_PATIENCE`` misses, the posture's closest approach instead."""
-        aim_mid = LINK_RADIUS + self.config.radius
-        for attempt in range(MAX_TRIES):
-            q = rng.uniform(self.lower, self.upper)
-            q[0] = 0.0
-            aim = max(aim_mid + AIM_SPREAD * (2.0 * rng.random() - 1.0), 0.0)
-            yaw = self._aim_yaw(self._skeleton(q), node, aim, rng, attempt >= AIM_PATIENCE)
-            if yaw is None:
-                self.rejected["unreachable_aim"] += 1
-                continue
-            q[0] = yaw
-            if self.valid(q):
-                return q
-        raise RuntimeError(f"no valid contact-seeking configuration in {MAX_TRIES} draws")
+    def above_floor(self, Q: np.ndarray) -> np.ndarray:
+        """Every arm frame and the TCP above the table plane, per configuration (N,)."""
+        return self.chain.positions(Q)[:, :, 2].min(axis=1) >= self.config.floor
 
-    def _skeleton(self, q: np.ndarray) -> np.ndarray:
-        """Points every ~3 cm along the polyline of link frames link2 … TCP (the arm's axis)."""
-        frames = self.robot.frame_positions(q)
-        names = [f"panda_link{i}" for i in range(2, 9)] + ["panda_hand", "panda_hand_tcp"]
-        chain = np.array([frames[n] for n in names])
-        points = [chain[:1]]
-        for a, b in zip(chain[:-1], chain[1:], strict=True):
-            n = max(1, math.ceil(float(np.linalg.norm(b - a)) / SKELETON_STEP))
-            points.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
-        return np.vstack(points)
+    def candidates(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
+        """``n`` batches of BATCH candidate postures with joint 1 at 0 (n, BATCH, 7), their
+        aim distances (n, BATCH) and arm frames (n, BATCH, K, 3) — the kinematics of a whole
+        chunk in one numpy call, which costs what a few single calls do."""
+        Q = rng.uniform(self.lower, self.upper, (n, BATCH, 7))
+        Q[..., 0] = 0.0
+        aims = AIM_MAX * rng.random((n, BATCH))
+        chains = self.chain.positions(Q.reshape(-1, 7)).reshape(n, BATCH, -1, 3)
+        return Q, aims, chains
 
-    def _aim_yaw(self, skeleton: np.ndarray, node: int, aim: float, rng: np.random.Generator,
-                 closest_if_missed: bool) -> float | None:
-        """Joint-1 angle that puts a skeleton point (computed with joint 1 at 0) at distance
-        ``aim`` from the node, or None. Turning joint 1 by ψ moves a point at cylinder
-        coordinates (ρ, φ, z) to (ρ, φ + ψ, z), so its distance to the node (ρn, φn, zn)
-        obeys d² = ρ² + ρn² − 2ρρn·cos(φ + ψ − φn) + (z − zn)², solved here for ψ. Only
-        points whose closest approach over all ψ, hypot(ρ − ρn, z − zn), is within ``aim``
-        can be used; with ``closest_if_missed`` the point of closest approach is taken."""
-        rho = np.hypot(skeleton[:, 0], skeleton[:, 1])
-        dz = skeleton[:, 2] - self.nodes[node, 2]
-        rn = self.node_rho[node]
-        closest = np.hypot(rho - rn, dz)
-        usable = np.flatnonzero(closest <= aim)
-        if len(usable) == 0:
-            if not closest_if_missed:
-                return None
-            usable = np.array([int(np.argmin(closest))])
-            aim = float(closest[usable[0]])
-        k = int(rng.choice(usable))
-        if rho[k] * rn < 1e-6:  # point or node on the base axis: the yaw does not matter
+    def contact_seeking(self, rng: np.random.Generator, node: int, postures: np.ndarray,
+                        aims: np.ndarray, chains: np.ndarray) -> np.ndarray:
+        """A valid configuration whose arm passes close to ``node``. Each candidate posture
+        (joints 2–7 uniform) aims a random point of its skeleton at its aim distance from
+        the node (uniform in [0, AIM_MAX], symmetric about touching) by turning joint 1; the
+        first candidate that can, above the table and free of self-collision, is taken. When
+        a batch has none, new batches are drawn; a node few postures can reach (the rim of
+        the workspace) gets, after ``AIM_PATIENCE`` batches, the closest approach of the
+        best posture seen."""
+        best = (math.inf, None)  # (closest approach, posture) of the best candidate so far
+        for attempt in range(MAX_BATCHES):
+            if attempt:
+                postures, aims, chains = (a[0] for a in self.candidates(rng, 1))
+            above = chains[:, :, 2].min(axis=1) >= self.config.floor
+            self.rejected["below_floor"] += int((~above).sum())
+            skeletons = self.skeleton_weights @ chains
+            closest = self._closest_approach(skeletons, node)
+            closest[~above] = math.inf
+            for b in range(len(postures)):
+                usable = np.flatnonzero(closest[b] <= aims[b])
+                if len(usable) == 0:
+                    self.rejected["unreachable_aim"] += int(above[b])
+                    continue
+                q = self._turned(postures[b], skeletons[b, rng.choice(usable)], node, aims[b],
+                                 rng)
+                if q is not None:
+                    return q
+            b, k = np.unravel_index(int(np.argmin(closest)), closest.shape)
+            if closest[b, k] < best[0]:
+                best = (float(closest[b, k]), postures[b], skeletons[b, k])
+            if attempt + 1 >= AIM_PATIENCE and best[1] is not None:
+                q = self._turned(best[1], best[2], node, best[0], rng)
+                best = (math.inf, None)  # used once: if it fails, look for another
+                if q is not None:
+                    return q
+        raise RuntimeError(f"no valid contact-seeking configuration in "
+                           f"{MAX_BATCHES * BATCH} draws")
+
+    def _turned(self, q: np.ndarray, point: np.ndarray, node: int, aim: float,
+                rng: np.random.Generator) -> np.ndarray | None:
+        """``q`` with joint 1 set by :meth:`_yaw_for`, or None if no such angle exists or the
+        result self-collides."""
+        yaw = self._yaw_for(point, node, aim, rng)
+        if yaw is None:
+            return None
+        q = q.copy()
+        q[0] = yaw
+        if self.robot.self_collision(q):
+            self.rejected["self_collision"] += 1
+            return None
+        return q
+
+    def _closest_approach(self, skeletons: np.ndarray, node: int) -> np.ndarray:
+        """Smallest distance from each skeleton point (joint 1 at 0) to the node over all
+        joint-1 angles: turning joint 1 moves a point on a circle about the base z axis."""
+        rho = np.hypot(skeletons[..., 0], skeletons[..., 1])
+        return np.hypot(rho - self.node_rho[node], skeletons[..., 2] - self.nodes[node, 2])
+
+    def _yaw_for(self, point: np.ndarray, node: int, aim: float,
+                 rng: np.random.Generator) -> float | None:
+        """Joint-1 angle ψ that puts ``point`` (computed with joint 1 at 0) at distance ``aim``
+        from the node, or None outside the joint limits. Turning by ψ moves a point at
+        cylinder coordinates (ρ, φ, z) to (ρ, φ + ψ, z), so its distance to the node
+        (ρn, φn, zn) obeys d² = ρ² + ρn² − 2ρρn·cos(φ + ψ − φn) + (z − zn)²."""
+        rho, rn = float(np.hypot(point[0], point[1])), float(self.node_rho[node])
+        if rho * rn < 1e-6:  # point or node on the base axis: the yaw does not matter
             return float(rng.uniform(self.lower[0], self.upper[0]))
-        cos_a = (rho[k] ** 2 + rn**2 + dz[k] ** 2 - aim**2) / (2.0 * rho[k] * rn)
-        alpha = math.acos(float(np.clip(cos_a, -1.0, 1.0)))
-        phi = math.atan2(skeleton[k, 1], skeleton[k, 0])
+        dz = float(point[2] - self.nodes[node, 2])
+        cos_a = (rho**2 + rn**2 + dz**2 - aim**2) / (2.0 * rho * rn)
+        alpha = math.acos(min(max(cos_a, -1.0), 1.0))
+        phi = math.atan2(point[1], point[0])
         sign = 1.0 if rng.random() < 0.5 else -1.0
         for s in (sign, -sign):
             yaw = math.remainder(self.node_phi[node] + s * alpha - phi, 2.0 * math.pi)
@@ -250,17 +341,18 @@ class Sampler:
                 return yaw
         return None
 
-    def valid(self, q: np.ndarray) -> bool:
-        """A state a table-mounted arm can be in: link frames and TCP above the table plane
-        and no self-collision of the exact meshes."""
-        frames = self.robot.frame_positions(q)
-        if min(p[2] for name, p in frames.items() if name != "panda_link0") < self.config.floor:
-            self.rejected["below_floor"] += 1
-            return False
-        if self.robot.self_collision(q):
-            self.rejected["self_collision"] += 1
-            return False
-        return True
+
+def _polyline_weights(chain: np.ndarray, step: float) -> np.ndarray:
+    """Matrix W (P, K) such that ``W @ chain`` puts points at most ``step`` apart along the
+    polyline through the K rows of ``chain``, both ends included."""
+    rows = [np.eye(len(chain))[0]]
+    for i in range(len(chain) - 1):
+        n = max(1, math.ceil(float(np.linalg.norm(chain[i + 1] - chain[i])) / step))
+        for t in np.linspace(0.0, 1.0, n + 1)[1:]:
+            w = np.zeros(len(chain))
+            w[i], w[i + 1] = 1.0 - t, t
+            rows.append(w)
+    return np.array(rows)
 
 
 # ---- chunk files ----------------------------------------------------------------------
@@ -295,13 +387,13 @@ def _chunk_complete(path: Path, size: int, fingerprint: str, index: int) -> bool
             and all(k in arrays and len(arrays[k]) == size for k, *_ in COLUMNS))
 
 
-def _write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str, index: int,
-                 seconds: float) -> None:
-    """Write to a temporary name and rename, so an interrupted run leaves no half chunk."""
+def _write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str,
+                 index: int) -> None:
+    """Write to a temporary name and rename, so an interrupted run leaves no half chunk.
+    Only data go in (no timing), so the same chunk is the same bytes on every run."""
     tmp = path.with_suffix(".tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, fingerprint=np.array(fingerprint), chunk=np.array(index),
-                 seconds=np.array(seconds), **arrays)
+        np.savez(f, fingerprint=np.array(fingerprint), chunk=np.array(index), **arrays)
     os.replace(tmp, path)
 
 
@@ -320,8 +412,7 @@ def _run_chunk(job: tuple[str, int, int]) -> dict:
     before = dict(_WORKER.rejected)
     arrays = _WORKER.chunk(index, size)
     seconds = time.perf_counter() - start
-    _write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index,
-                 seconds)
+    _write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index)
     rejected = {k: v - before[k] for k, v in _WORKER.rejected.items()}
     return {"index": index, "size": size, "seconds": seconds, "rejected": rejected}
 
@@ -336,7 +427,7 @@ def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None 
     sidecar written to ``out_dir/dataset.json``."""
     if not isinstance(n_samples, int) or n_samples < 1:
         raise CollectError(f"n_samples must be a positive integer, got {n_samples!r}")
-    workers = os.cpu_count() or 1 if workers is None else workers
+    workers = (os.cpu_count() or 1) if workers is None else workers
     if not isinstance(workers, int) or workers < 1:
         raise CollectError(f"workers must be a positive integer, got {workers!r}")
     config = CollectConfig(seed=seed, chunk_size=chunk_size, spacing=spacing, reach=reach,
@@ -370,7 +461,11 @@ def _nodes_for(out_dir: Path, config: CollectConfig) -> np.ndarray:
 
 def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int,
               n_samples: int, progress: bool) -> list[dict]:
-    """Run chunk jobs in-process (one worker) or on a spawn pool, with one progress bar."""
+    """Run chunk jobs in-process (one worker) or on a process pool, with one progress bar.
+
+    The pool forks (Linux), so a plain script needs no ``__main__`` guard; each worker
+    still builds its own robot model in ``_init_worker`` — nothing made by the parent's
+    pinocchio/coal is used across processes. Where fork is missing, spawn is used."""
     from tqdm import tqdm
 
     done = n_samples - sum(size for _, _, size in jobs)
@@ -386,7 +481,8 @@ def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int
                 reports.append(report)
                 bar.update(report["size"])
         else:
-            ctx = multiprocessing.get_context("spawn")
+            methods = multiprocessing.get_all_start_methods()
+            ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
             with ctx.Pool(workers, initializer=_init_worker, initargs=init_args) as pool:
                 for report in pool.imap_unordered(_run_chunk, jobs):
                     reports.append(report)
@@ -417,8 +513,8 @@ def _sha256(path: Path) -> str:
 def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_samples: int,
                    reports: list[dict], wall: float, workers: int) -> dict:
     """Summarise every chunk of the data set (read back from disk) into ``dataset.json``."""
-    chunks, counts, cpu = [], {"collision": 0, "near": 0, "contact_seeking": 0,
-                               "collision_contact_seeking": 0}, 0.0
+    chunks, counts = [], {"collision": 0, "near": 0, "contact_seeking": 0,
+                          "collision_contact_seeking": 0}
     for k, size in chunk_ranges(n_samples, config.chunk_size):
         path = chunk_path(out_dir, k)
         arrays = _read_chunk(path)
@@ -427,7 +523,6 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
         seeking = arrays["source"] == 1
         counts["contact_seeking"] += int(seeking.sum())
         counts["collision_contact_seeking"] += int((arrays["collision"] & seeking).sum())
-        cpu += float(arrays["seconds"])
         chunks.append({"file": path.name, "rows": size, "sha256": _sha256(path)})
     counts["samples"] = n_samples
     counts["free"] = n_samples - counts["collision"]
@@ -441,7 +536,7 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
         "n_samples": n_samples, "seed": config.seed, "config": asdict(config),
         "fingerprint": config.fingerprint(), "radius": config.radius, "margin": config.margin,
         "spacing": config.spacing,
-        "n_nodes": len(nodes), "nodes": np.round(nodes, 9).tolist(),
+        "n_nodes": len(nodes), "nodes": nodes.tolist(),
         "counts": counts,
         "collision_ratio": counts["collision"] / n_samples,
         "collision_to_free": counts["collision"] / max(counts["free"], 1),
@@ -449,7 +544,8 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
         "rejected_this_run": rejected,
         "timing": {"wall_s_this_run": round(wall, 3), "samples_this_run": generated,
                    "samples_per_s_this_run": round(generated / wall, 1) if generated else None,
-                   "workers": workers, "chunk_cpu_s_total": round(cpu, 3)},
+                   "workers": workers,
+                   "chunk_cpu_s_this_run": round(sum(r["seconds"] for r in reports), 3)},
         "versions": _versions(),
         "chunks": chunks,
     }

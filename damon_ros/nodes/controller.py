@@ -1,0 +1,290 @@
+"""controller: PID joint-trajectory controller, a thin ROS adapter over `TrajectoryFollower`.
+
+Trajectories in (``/damon/joint_trajectory``, ``trajectory_msgs/JointTrajectory``), measured
+joints in (``/joint_states``), velocity commands out (``/damon/joint_commands``,
+``std_msgs/Float64MultiArray``, rad/s in the order of the ``joints`` parameter) at
+``rate_hz``, and ``/damon/controller_state`` (``sensor_msgs/JointState``: desired position in
+``position``, desired velocity in ``velocity``, position error in ``effort``) at
+``state_rate_hz``. Interpolation, PID and the limit-respecting command shaping are
+`damon_ros.control`'s; this module decides *when* to call it and what to do on bad or
+missing input:
+
+- Trajectories follow ros2_controllers' JTC: a zero ``header.stamp`` starts on arrival, any
+  other starts at that ROS time; a new one replaces the old; one without points holds the
+  current position; one whose joints don't match (another order is fine), whose
+  ``time_from_start`` is not strictly increasing, that holds NaN/inf or leaves the limits is
+  rejected with one log line and ignored, so the arm keeps doing what it did.
+- Until the first joint state arrives nothing is published: the controller does not know
+  where the arm is, and it has never commanded it, so there is nothing to stop.
+- Joint states older than ``joint_state_timeout_s``: the trajectory is aborted and the
+  command brakes to zero velocity as fast as the limit profile allows (a step to zero would
+  break the acceleration and jerk limits a Franka enforces), then zeros are published while
+  the states stay stale. Logged once; when states return the arm holds where it is.
+- ``planner_heartbeat_timeout_s`` > 0: while a trajectory is active and no
+  ``/damon/planner_status`` arrived for that long, the arm holds (logged once per lapse).
+
+The command loop runs in a `FixedRateLoop` thread (see `common.FixedRateLoop` for why not an
+rclpy timer); callbacks only hand data to it under one lock.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import rclpy.logging
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory
+
+from damon_ros.control import PIDGains, TrajectoryFollower, reorder_points, validate_trajectory
+from damon_ros.limits import PROFILES, joint_limits
+from damon_ros.nodes import common
+from damon_ros.trajectory import METHODS
+
+NAME = "controller"
+TRAJECTORY_TOPIC = "/damon/joint_trajectory"
+STATE_TOPIC = "/joint_states"
+COMMAND_TOPIC = "/damon/joint_commands"
+CONTROLLER_STATE_TOPIC = "/damon/controller_state"
+HEARTBEAT_TOPIC = "/damon/planner_status"
+WARN_EVERY_S = 5.0
+_DEFAULT_GAINS = PIDGains()
+
+PARAMETERS = (
+    ("joints", "joint names in command order; empty: <joint_prefix>joint1..7"),
+    ("joint_prefix", "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
+    ("limit_profile", f"limits every command respects: {' | '.join(PROFILES)}"),
+    ("rate_hz", "command rate (Hz)"),
+    ("state_rate_hz", "/damon/controller_state rate (Hz)"),
+    ("interpolation", f"between trajectory points: {' | '.join(METHODS)}"),
+    ("p", "proportional gain per joint (1/s)"),
+    ("i", "integral gain per joint (1/s^2)"),
+    ("d", "derivative gain per joint (-)"),
+    ("i_clamp", "largest integral contribution per joint (rad/s), anti-windup"),
+    ("ff_velocity_scale", "feed-forward velocity scale per joint"),
+    ("joint_state_timeout_s", "older joint states stop the arm (s)"),
+    ("planner_heartbeat_timeout_s", "hold when the planner is silent this long; 0: off (s)"),
+    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+)
+
+
+def _seconds(duration) -> float:
+    return duration.sec + 1e-9 * duration.nanosec
+
+
+def trajectory_arrays(msg: JointTrajectory):
+    """(times, positions, velocities, accelerations) as plain lists, message joint order."""
+    points = msg.points
+    return ([_seconds(p.time_from_start) for p in points],
+            [list(p.positions) for p in points],
+            [list(p.velocities) for p in points],
+            [list(p.accelerations) for p in points])
+
+
+class Controller(Node):
+    """Parameters in, `TrajectoryFollower.update` at ``rate_hz``, velocity commands out."""
+
+    def __init__(self) -> None:
+        super().__init__(NAME)
+        p = self._declare_parameters()
+        self.limits = joint_limits(p["limit_profile"])
+        self.names = common.joint_names(p["joints"], p["joint_prefix"])
+        gains = PIDGains(*(np.asarray(p[k], dtype=float) for k in
+                           ("p", "i", "d", "i_clamp", "ff_velocity_scale")))
+        self._follower = TrajectoryFollower(self.limits, gains, p["rate_hz"],
+                                            p["interpolation"])
+        self._js_timeout = p["joint_state_timeout_s"]
+        self._hb_timeout = p["planner_heartbeat_timeout_s"]
+        self._lock = threading.Lock()  # guards the follower and the latest measurement
+        self._q: np.ndarray | None = None
+        self._q_time = 0.0  # monotonic arrival time of self._q
+        self._index: tuple[tuple[str, ...], np.ndarray | None] = ((), None)
+        self._last_heartbeat = time.monotonic()
+        self._stale = False
+        self._hb_lapsed = False
+        self._ticks = 0
+        self._state_every = max(1, round(p["rate_hz"] / p["state_rate_hz"]))
+        self._cmd_pub = self.create_publisher(Float64MultiArray, COMMAND_TOPIC, 10)
+        self._state_pub = self.create_publisher(JointState, CONTROLLER_STATE_TOPIC, 10)
+        self.create_subscription(JointState, STATE_TOPIC, self._on_joint_state, 10)
+        self.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self._on_trajectory, 10)
+        self.create_subscription(DiagnosticArray, HEARTBEAT_TOPIC, self._on_heartbeat, 10)
+        self._loop = common.FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
+                                          on_error=self._on_loop_error)
+        refused = common.set_realtime_priority(p["realtime_priority"])
+        if refused:
+            self.get_logger().warning(refused)
+        self._loop.start()
+        self.get_logger().info(
+            f"driving {self.names[0]}..{self.names[-1]} at {p['rate_hz']:g} Hz, profile "
+            f"{self.limits.profile}, {p['interpolation']} interpolation, joint-state timeout "
+            f"{self._js_timeout:g} s, planner heartbeat "
+            f"{f'{self._hb_timeout:g} s' if self._hb_timeout > 0 else 'off'}")
+
+    def _declare_parameters(self) -> dict:
+        d = common.declare
+        doc = dict(PARAMETERS)
+        g = _DEFAULT_GAINS
+        p = {
+            "joints": d(self, "joints", Parameter.Type.STRING_ARRAY, doc["joints"]),
+            "joint_prefix": d(self, "joint_prefix", "panda_", doc["joint_prefix"]),
+            "limit_profile": d(self, "limit_profile", "panda", doc["limit_profile"]),
+            "rate_hz": d(self, "rate_hz", 1000.0, doc["rate_hz"], low=1.0, high=10000.0),
+            "state_rate_hz": d(self, "state_rate_hz", 100.0, doc["state_rate_hz"],
+                               low=0.1, high=10000.0),
+            "interpolation": d(self, "interpolation", "quintic", doc["interpolation"]),
+            "joint_state_timeout_s": d(self, "joint_state_timeout_s", 0.05,
+                                       doc["joint_state_timeout_s"], low=0.001, high=10.0),
+            "planner_heartbeat_timeout_s": d(self, "planner_heartbeat_timeout_s", 0.0,
+                                             doc["planner_heartbeat_timeout_s"],
+                                             low=0.0, high=3600.0),
+            "realtime_priority": d(self, "realtime_priority", 20, doc["realtime_priority"],
+                                   low=0, high=99),
+        }
+        for k in ("p", "i", "d", "i_clamp", "ff_velocity_scale"):
+            p[k] = d(self, k, getattr(g, k).tolist(), doc[k])
+        return p
+
+    # -- executor side: hand data to the loop
+
+    def _joint_index(self, names: Sequence[str]) -> np.ndarray | None:
+        """Where each controller joint sits in a JointState (cached: names rarely change)."""
+        key = tuple(names)
+        if key != self._index[0]:
+            where = {n: k for k, n in enumerate(key)}
+            index = None
+            if all(n in where for n in self.names):
+                index = np.array([where[n] for n in self.names])
+            self._index = (key, index)
+        return self._index[1]
+
+    def _on_joint_state(self, msg: JointState) -> None:
+        t = time.monotonic()
+        index = self._joint_index(msg.name)
+        if index is None or len(msg.position) != len(msg.name):
+            self.get_logger().warning(
+                f"ignored joint state: needs positions of {self.names}, got names "
+                f"{list(msg.name)} with {len(msg.position)} positions",
+                throttle_duration_sec=WARN_EVERY_S)
+            return
+        q = np.asarray(msg.position, dtype=float)[index]
+        with self._lock:
+            self._q, self._q_time = q, t
+
+    def _on_heartbeat(self, _msg: DiagnosticArray) -> None:
+        with self._lock:
+            self._last_heartbeat = time.monotonic()
+            self._hb_lapsed = False
+
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
+        log = self.get_logger()
+        if not msg.points:
+            with self._lock:
+                self._follower.set_trajectory([], [])
+            log.info("empty trajectory: stopping and holding the current position")
+            return
+        times, pos, vel, acc = trajectory_arrays(msg)
+        start = None if msg.header.stamp.sec == 0 and msg.header.stamp.nanosec == 0 \
+            else common.stamp_to_sec(msg.header.stamp)
+        reason = validate_trajectory(msg.joint_names, self.names, times, pos, vel, acc,
+                                     self.limits, start_time=start, now=self._ros_now())
+        if reason is None:
+            try:
+                arrays = reorder_points(msg.joint_names, self.names, times, pos, vel, acc)
+                with self._lock:
+                    self._follower.set_trajectory(*arrays, start_time=start)
+            except ValueError as exc:
+                reason = str(exc)
+        if reason is not None:
+            log.error(f"rejected trajectory of {len(msg.points)} points: {reason}; ignored, "
+                      "the arm keeps its current motion")
+            return
+        log.info(f"accepted trajectory: {len(msg.points)} points over {times[-1]:.3f} s, "
+                 f"{'starting now' if start is None else f'starting at t = {start:.3f}'}")
+
+    def _ros_now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- loop thread
+
+    def _tick(self, t: float) -> None:
+        now = self._ros_now()
+        with self._lock:
+            if self._q is None:
+                return  # no measurement yet: publish nothing (module doc)
+            if t - self._q_time > self._js_timeout:
+                u = self._stale_step(now, t)
+            else:
+                u = self._control_step(now, t, self._q)
+            state = self._state_msg() if self._ticks % self._state_every == 0 else None
+        self._ticks += 1
+        self._cmd_pub.publish(Float64MultiArray(data=u.tolist()))
+        if state is not None:
+            state.header.stamp = self.get_clock().now().to_msg()
+            self._state_pub.publish(state)
+
+    def _stale_step(self, now: float, t: float) -> np.ndarray:
+        """Abort and brake: the follower treats a NaN measurement exactly so."""
+        if not self._stale:
+            self._stale = True
+            self.get_logger().warning(
+                f"joint states stale ({1e3 * (t - self._q_time):.0f} ms > "
+                f"{1e3 * self._js_timeout:.0f} ms): trajectory aborted, braking to a stop")
+        return self._follower.update(now, np.full(len(self.names), np.nan))
+
+    def _control_step(self, now: float, t: float, q: np.ndarray) -> np.ndarray:
+        if self._stale:
+            self._stale = False
+            self._follower.hold(q)
+            self.get_logger().info("joint states are back: holding the current position")
+        if (self._hb_timeout > 0.0 and self._follower.active and not self._hb_lapsed
+                and t - self._last_heartbeat > self._hb_timeout):
+            self._hb_lapsed = True
+            self._follower.hold(q)
+            self.get_logger().warning(
+                f"no {HEARTBEAT_TOPIC} for {self._hb_timeout:g} s: trajectory stopped, holding")
+        elif self._hb_lapsed and self._follower.active:
+            self._follower.hold(q)  # still no heartbeat: a new trajectory must not run
+        return self._follower.update(now, q)
+
+    def _state_msg(self) -> JointState:
+        q_d, qd_d, _ = self._follower.desired
+        return JointState(name=self.names, position=q_d.tolist(), velocity=qd_d.tolist(),
+                          effort=self._follower.error.tolist())
+
+    def _on_loop_error(self, exc: BaseException) -> None:
+        if not self.context.ok():
+            return  # publishing failed because ROS is shutting down: nothing to report
+        self.get_logger().error(f"control loop stopped: {type(exc).__name__}: {exc}")
+
+    def on_shutdown(self) -> None:
+        """Called by `common.run_single_threaded`: stop the loop and report its timing."""
+        self._loop.stop()
+        # ROS may already be shut down (rosout gone): a logger outside the node prints only.
+        rclpy.logging.get_logger(f"{NAME}.shutdown").info(self._loop.summary())
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--help" in own or "-h" in own:
+        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
+        return 0
+    try:
+        return common.run_single_threaded(Controller, argv)
+    except (ValueError, ParameterException) as exc:
+        print(f"{NAME}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,249 @@
+"""mock_camera: the RealSense stand-in, a thin ROS adapter over `damon_ros.render`.
+
+Renders the obstacles of a scenario file, at scenario time, seen from the calibrated camera
+pose (``config/camera.yaml``), and publishes what a D435 driver would: colour (``rgb8``),
+depth aligned to colour (``16UC1``, mm, 0 = no return) and the colour camera_info, all three
+with the same stamp; plus the ground truth on ``/damon/sim/obstacles`` (MarkerArray in the
+base frame, ns = colour, id = obstacle index, text = obstacle name) for evaluation.
+
+Timing: frames come from a timer at ``fps``. A frame is stamped at the instant it is
+published, and the scene is rendered *for that instant*: the node predicts how long
+rendering takes (the 90th percentile of recent frames plus a margin), renders the scene at
+tick + prediction, and if rendering finished early waits for the stamp before publishing.
+So the picture is exactly the scene at its stamp and no stamp lies in the future; the stamp
+-> obstacle latency measured downstream is transport + tracking, as with a camera whose
+exposure took no time. Scenario time is ``(ROS time - scenario_start_time_s) * time_scale``
+(start = this node's start when 0), the same convention as mock_panda.
+
+QoS: the three camera topics use ``qos_profile_sensor_data`` (best effort, keep last 5),
+what the tracker subscribes with: an image that is late is useless, and a best-effort
+writer never makes the render loop wait for a slow reader. A reliable subscriber (rviz's
+default) must select best effort to receive them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+from builtin_interfaces.msg import Time
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from visualization_msgs.msg import MarkerArray
+
+from damon_ros.markers import class_rgba, shape_to_marker, to_stamp
+from damon_ros.nodes import common
+from damon_ros.render import (
+    Camera,
+    RenderSettings,
+    load_camera,
+    load_render_settings,
+    render,
+    render_settings_kwargs,
+    scene_at,
+)
+from damon_ros.scenario import Scenario, load_scenario
+
+NAME = "mock_camera"
+COLOR_TOPIC = "/camera/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/camera/color/camera_info"
+TRUTH_TOPIC = "/damon/sim/obstacles"
+WARN_EVERY_S = 5.0
+RENDER_MARGIN_S = 0.001
+"""Added to the predicted render time, so that the stamp is rarely passed before publishing."""
+
+PARAMETERS = (
+    ("scenario", "scenario file whose obstacles are rendered (required)"),
+    ("fps", "frames per second"),
+    ("camera_config", "camera file (intrinsics, base_T_camera, mock_render); '' = shipped"),
+    ("depth_noise_std_m", "depth noise std (m); < 0: the camera file's mock_render value"),
+    ("dropout", "fraction of depth pixels with no return; < 0: the camera file's value"),
+    ("background_depth_m", "depth of the grey backdrop (m), 0 = no return; < 0: file's value"),
+    ("seed", "noise seed; < 0: the camera file's value"),
+    ("time_scale", "scenario seconds per ROS second"),
+    ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
+    ("publish_ground_truth", f"publish the scenario's obstacles on {TRUTH_TOPIC}"),
+    ("truth_lifetime_frames", "lifetime of a ground-truth marker, in frames"),
+)
+
+
+def render_settings(camera_config: str, overrides: dict[str, float]) -> RenderSettings:
+    """The ``mock_render`` section of the camera file (or the shipped one), then overrides.
+
+    A real calibration file has no ``mock_render`` section; the shipped settings serve then.
+    Overrides with a negative value mean "keep the file's value".
+    """
+    path = Path(camera_config) if camera_config else None
+    has_section = path is not None and isinstance(
+        data := yaml.safe_load(path.read_text(encoding="utf-8")), dict) and "mock_render" in data
+    settings = load_render_settings(path if has_section else None)
+    chosen = {k: v for k, v in overrides.items() if v >= 0}
+    if "seed" in chosen:
+        chosen["seed"] = int(chosen["seed"])
+    settings = dataclasses.replace(settings, **chosen)
+    if not 0.0 <= settings.dropout < 1.0:
+        raise ValueError(f"dropout {settings.dropout} must be in [0, 1)")
+    return settings
+
+
+def image_message(array: np.ndarray, encoding: str, stamp, frame_id: str) -> Image:
+    """A sensor_msgs/Image of a C-contiguous little-endian array (rgb8 HxWx3 or 16UC1 HxW)."""
+    msg = Image(height=array.shape[0], width=array.shape[1], encoding=encoding,
+                is_bigendian=0, step=array.strides[0])
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.data = np.ascontiguousarray(array).tobytes()
+    return msg
+
+
+def camera_info_message(camera: Camera, stamp) -> CameraInfo:
+    info = camera.camera_info()
+    msg = CameraInfo(width=info["width"], height=info["height"],
+                     distortion_model=info["distortion_model"], d=info["d"], k=info["k"],
+                     r=info["r"], p=info["p"])
+    msg.header.stamp = stamp
+    msg.header.frame_id = camera.frame_id
+    return msg
+
+
+class MockCamera(Node):
+    """Parameters in, `render` per timer tick, camera topics (and ground truth) out."""
+
+    def __init__(self) -> None:
+        super().__init__(NAME)
+        p = self._declare_parameters()
+        if not p["scenario"]:
+            raise ValueError("parameter scenario is required: the scenario file to render")
+        self.scenario: Scenario = load_scenario(p["scenario"])
+        self.camera = load_camera(p["camera_config"] or None)
+        overrides = {k: p[k] for k in ("depth_noise_std_m", "dropout", "background_depth_m",
+                                       "seed")}
+        self.settings = render_settings(p["camera_config"], overrides)
+        self._rng = np.random.default_rng(self.settings.seed)
+        self.period = 1.0 / p["fps"]
+        self.time_scale = p["time_scale"]
+        self.truth_lifetime_s = p["truth_lifetime_frames"] * self.period
+        self._render_s: deque[float] = deque([0.5 * self.period], maxlen=30)
+        self._frames = 0
+        self._overruns = 0
+        self._pub_color = self.create_publisher(Image, COLOR_TOPIC, qos_profile_sensor_data)
+        self._pub_depth = self.create_publisher(Image, DEPTH_TOPIC, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, INFO_TOPIC, qos_profile_sensor_data)
+        self._pub_truth = (self.create_publisher(MarkerArray, TRUTH_TOPIC, 10)
+                           if p["publish_ground_truth"] else None)
+        self.start_time = float(p["scenario_start_time_s"] or self._now())
+        self.create_timer(self.period, self._frame)
+        s = self.settings
+        self.get_logger().info(
+            f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles), "
+            f"{self.camera.width}x{self.camera.height} at {p['fps']:g} fps, depth noise "
+            f"{s.depth_noise_std_m:g} m, dropout {s.dropout:g}, seed {s.seed}, scenario t=0 at "
+            f"{self.start_time:.3f} s, time scale {self.time_scale:g}")
+
+    def _declare_parameters(self) -> dict:
+        d = common.declare
+        doc = dict(PARAMETERS)
+        return {
+            "scenario": d(self, "scenario", "", doc["scenario"]),
+            "fps": d(self, "fps", 30.0, doc["fps"], low=0.1, high=240.0),
+            "camera_config": d(self, "camera_config", "", doc["camera_config"]),
+            "depth_noise_std_m": d(self, "depth_noise_std_m", -1.0, doc["depth_noise_std_m"]),
+            "dropout": d(self, "dropout", -1.0, doc["dropout"]),
+            "background_depth_m": d(self, "background_depth_m", -1.0,
+                                    doc["background_depth_m"]),
+            "seed": d(self, "seed", -1, doc["seed"]),
+            "time_scale": d(self, "time_scale", 1.0, doc["time_scale"], low=0.0, high=100.0),
+            "scenario_start_time_s": d(self, "scenario_start_time_s", 0.0,
+                                       doc["scenario_start_time_s"]),
+            "publish_ground_truth": d(self, "publish_ground_truth", True,
+                                      doc["publish_ground_truth"]),
+            "truth_lifetime_frames": d(self, "truth_lifetime_frames", 3.0,
+                                       doc["truth_lifetime_frames"], low=0.0, high=1000.0),
+        }
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def scenario_time(self, ros_time: float) -> float:
+        return (ros_time - self.start_time) * self.time_scale
+
+    def _frame(self) -> None:
+        tick = self._now()
+        predicted = float(np.percentile(self._render_s, 90)) + RENDER_MARGIN_S
+        stamp_s = tick + min(predicted, self.period)
+        scene = scene_at(self.scenario, self.scenario_time(stamp_s))
+        rgb, depth = render(self.camera, scene, **render_settings_kwargs(self.settings,
+                                                                          self._rng))
+        messages = self._messages(rgb, depth, scene)
+        ready = self._now()
+        self._render_s.append(ready - tick)
+        if ready < stamp_s:
+            time.sleep(stamp_s - ready)  # never publish a stamp from the future
+        self._publish(messages, to_stamp(stamp_s))
+        self._frames += 1
+        busy = self._now() - tick
+        if busy > self.period:
+            self._overruns += 1
+            self.get_logger().warning(
+                f"a frame took {busy * 1e3:.1f} ms, longer than the {self.period * 1e3:.1f} ms "
+                f"period: publishing below the requested fps ({self._overruns} so far)",
+                throttle_duration_sec=WARN_EVERY_S)
+
+    def _messages(self, rgb: np.ndarray, depth: np.ndarray, scene) -> list:
+        """The frame's messages, stamped later: copying 1.5 MB of pixels is done before."""
+        frame = self.camera.frame_id
+        placeholder = Time()
+        messages = [(self._pub_color, image_message(rgb, "rgb8", placeholder, frame)),
+                    (self._pub_depth, image_message(depth, "16UC1", placeholder, frame)),
+                    (self._pub_info, camera_info_message(self.camera, placeholder))]
+        if self._pub_truth is not None:
+            markers = MarkerArray()
+            for i, (shape, color) in enumerate(scene):
+                markers.markers.append(shape_to_marker(
+                    shape, color, i, self.camera.base_frame, placeholder, self.truth_lifetime_s,
+                    class_rgba(color, 0.4)))
+            messages.append((self._pub_truth, markers))
+        return messages
+
+    @staticmethod
+    def _publish(messages: list, stamp: Time) -> None:
+        """Stamp every message of the frame alike (markers too), then publish them in order."""
+        for publisher, msg in messages:
+            for header in ([m.header for m in msg.markers] if isinstance(msg, MarkerArray)
+                           else [msg.header]):
+                header.stamp = stamp
+            publisher.publish(msg)
+
+    def on_shutdown(self) -> None:
+        """Called by `common.run_single_threaded`: one line of frame statistics."""
+        ms = 1e3 * np.asarray(self._render_s)
+        self.get_logger().info(
+            f"{self._frames} frames published, render p50 {np.median(ms):.1f} ms (last "
+            f"{ms.size}), {self._overruns} frames over the period")
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--help" in own or "-h" in own:
+        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
+        return 0
+    try:
+        return common.run_single_threaded(MockCamera, argv)
+    except (ValueError, OSError, ParameterException) as exc:
+        print(f"{NAME}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,255 @@
+"""mock_panda: the hardware stand-in, a thin ROS adapter over `damon_ros.sim.ArmSim`.
+
+Velocity commands in (``/damon/joint_commands``, ``std_msgs/Float64MultiArray``, rad/s in the
+order of the ``joints`` parameter), joint states out (``/joint_states`` at ``rate_hz``).
+The arm model — first-order actuator lag, limit clamps, braking when commands go stale —
+is `ArmSim`'s; this module only moves data between it and the ROS graph.
+
+Timing: the simulation step and the joint-state publication run in a `FixedRateLoop` thread
+sleeping to absolute deadlines, not in an rclpy timer (a 1 kHz rclpy timer drifts and loses
+ticks while message callbacks run; see `common.FixedRateLoop`). Each step integrates the
+real elapsed time, so the mock arm moves in wall-clock time even when a tick is late. The
+executor only copies commands into the model under a lock and runs the optional contact
+check at a lower rate.
+
+Optional contact report (``contact_check``): with a ``scenario`` loaded, the exact mesh
+clearance (`damon_ros.robot.Robot("mesh")`) between the arm and the scenario's obstacles at
+scenario time is published on ``/damon/sim/contact`` (``diagnostic_msgs/DiagnosticArray``,
+level ERROR on contact) at ``contact_rate_hz``. Scenario time 0 is ``scenario_start_time_s``
+(ROS time, seconds), or this node's start when that is 0.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import rclpy.logging
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from damon_ros.limits import PROFILES, JointLimits, joint_limits
+from damon_ros.nodes import common
+from damon_ros.scenario import Scenario, load_scenario
+from damon_ros.sim import ArmSim
+
+NAME = "mock_panda"
+READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
+COMMAND_TOPIC = "/damon/joint_commands"
+STATE_TOPIC = "/joint_states"
+CONTACT_TOPIC = "/damon/sim/contact"
+WARN_EVERY_S = 5.0  # a stream of bad commands gives one warning line per this many seconds
+
+PARAMETERS = (
+    ("joints", "joint names in command/state order; empty: <joint_prefix>joint1..7"),
+    ("joint_prefix", "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
+    ("limit_profile", f"joint-limit profile the mock arm clamps to: {' | '.join(PROFILES)}"),
+    ("rate_hz", "simulation step and /joint_states rate (Hz)"),
+    ("initial_positions", "start joint positions (rad); ignored when a scenario is given"),
+    ("scenario", "scenario file: start at its start state, obstacles for contact_check"),
+    ("command_timeout_s", "a command older than this stops the joints (s)"),
+    ("actuator_tau_s", "time constant of the first-order joint velocity response (s)"),
+    ("contact_check", "publish exact mesh clearance/contact on /damon/sim/contact"),
+    ("contact_rate_hz", "rate of the contact check (Hz)"),
+    ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
+    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+)
+
+
+def start_positions(initial: Sequence[float], scenario: Scenario | None) -> np.ndarray:
+    """The scenario's start state when a scenario is given, else ``initial_positions``."""
+    q0 = np.asarray(scenario.start if scenario is not None else list(initial), dtype=float)
+    if q0.shape != (7,) or not np.all(np.isfinite(q0)):
+        raise ValueError(f"parameter initial_positions must be 7 finite values, got {q0}")
+    return q0
+
+
+class ContactMonitor:
+    """Exact (mesh) clearance between the arm and a scenario's obstacles at scenario time.
+
+    Built only when asked for: loading the meshes takes about a second and each query a few
+    milliseconds, which is why it runs at a few tens of Hz beside the 1 kHz loop.
+    """
+
+    def __init__(self, scenario: Scenario):
+        from damon_ros.robot import Robot  # heavy (pinocchio + coal meshes): only when used
+
+        self.scenario = scenario
+        self.robot = Robot("mesh")
+
+    def status(self, q: np.ndarray, t: float) -> DiagnosticStatus:
+        """OK with the clearance, or ERROR naming the obstacle and link in contact."""
+        obstacles = self.scenario.obstacles_at(t)
+        if not obstacles:
+            return _contact_status(DiagnosticStatus.OK, "no obstacles", float("inf"), "", "", t)
+        c = self.robot.clearance(q, obstacles)
+        name = self.scenario.obstacles[c.obstacle].name
+        if c.distance <= 0.0:
+            return _contact_status(DiagnosticStatus.ERROR, f"contact: {c.link} touches {name}",
+                                   c.distance, name, c.link, t)
+        return _contact_status(DiagnosticStatus.OK, "clear", c.distance, name, c.link, t)
+
+
+def _contact_status(level: bytes, message: str, distance: float, obstacle: str, link: str,
+                    t: float) -> DiagnosticStatus:
+    values = [KeyValue(key="min_clearance_m", value=f"{distance:.6f}"),
+              KeyValue(key="obstacle", value=obstacle), KeyValue(key="link", value=link),
+              KeyValue(key="scenario_time_s", value=f"{t:.4f}")]
+    return DiagnosticStatus(level=level, name=f"{NAME}: contact", message=message,
+                            hardware_id=NAME, values=values)
+
+
+class MockPanda(Node):
+    """Parameters in, `ArmSim` stepped at ``rate_hz``, joint states out."""
+
+    def __init__(self) -> None:
+        super().__init__(NAME)
+        self._declare_parameters()
+        p = self._params
+        limits: JointLimits = joint_limits(p["limit_profile"])
+        self.names = common.joint_names(p["joints"], p["joint_prefix"])
+        scenario = load_scenario(p["scenario"]) if p["scenario"] else None
+        q0 = start_positions(p["initial_positions"], scenario)
+        self._sim = ArmSim(limits, q0, tau=p["actuator_tau_s"],
+                           command_timeout=p["command_timeout_s"])
+        self._lock = threading.Lock()  # the loop thread steps, the executor commands
+        self._last_command: float | None = None  # monotonic time of the last good command
+        self._commanding = False  # inside an episode of fresh commands
+        self._last_step: float | None = None
+        self._pub = self.create_publisher(JointState, STATE_TOPIC, 10)
+        self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, 10)
+        self._setup_contact_check(scenario)
+        self._loop = common.FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
+                                          on_error=self._on_loop_error)
+        refused = common.set_realtime_priority(p["realtime_priority"])
+        if refused:
+            self.get_logger().warning(refused)
+        self._loop.start()
+        source = f"scenario {scenario.name}" if scenario else "initial_positions"
+        self.get_logger().info(
+            f"{len(self.names)} joints {self.names[0]}..{self.names[-1]}, profile "
+            f"{limits.profile}, {p['rate_hz']:g} Hz, start {np.round(q0, 3).tolist()} "
+            f"({source})")
+
+    def _declare_parameters(self) -> None:
+        d = common.declare
+        self._params = {
+            "joints": d(self, "joints", Parameter.Type.STRING_ARRAY, PARAMETERS[0][1]),
+            "joint_prefix": d(self, "joint_prefix", "panda_", PARAMETERS[1][1]),
+            "limit_profile": d(self, "limit_profile", "panda", PARAMETERS[2][1]),
+            "rate_hz": d(self, "rate_hz", 1000.0, PARAMETERS[3][1], low=1.0, high=10000.0),
+            "initial_positions": d(self, "initial_positions", READY, PARAMETERS[4][1]),
+            "scenario": d(self, "scenario", "", PARAMETERS[5][1]),
+            "command_timeout_s": d(self, "command_timeout_s", 0.1, PARAMETERS[6][1],
+                                   low=0.001, high=10.0),
+            "actuator_tau_s": d(self, "actuator_tau_s", 0.02, PARAMETERS[7][1],
+                                low=0.0001, high=1.0),
+            "contact_check": d(self, "contact_check", False, PARAMETERS[8][1]),
+            "contact_rate_hz": d(self, "contact_rate_hz", 50.0, PARAMETERS[9][1],
+                                 low=0.1, high=1000.0),
+            "scenario_start_time_s": d(self, "scenario_start_time_s", 0.0, PARAMETERS[10][1]),
+            "realtime_priority": d(self, "realtime_priority", 20, PARAMETERS[11][1],
+                                   low=0, high=99),
+        }
+
+    def _setup_contact_check(self, scenario: Scenario | None) -> None:
+        p = self._params
+        if not p["contact_check"]:
+            return
+        if scenario is None:
+            raise ValueError("parameter contact_check needs a scenario file (parameter scenario)")
+        self._contact = ContactMonitor(scenario)
+        start = p["scenario_start_time_s"] or self._ros_now()
+        self._scenario_start = float(start)
+        self._contact_pub = self.create_publisher(DiagnosticArray, CONTACT_TOPIC, 10)
+        self.create_timer(1.0 / p["contact_rate_hz"], self._check_contact,
+                          callback_group=MutuallyExclusiveCallbackGroup())
+
+    def _ros_now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- executor side
+
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        t = time.monotonic()
+        with self._lock:
+            reason = self._sim.command(msg.data, t)
+            if reason is None:
+                self._last_command = t
+        if reason is not None:
+            self.get_logger().warning(f"rejected joint command: {reason}",
+                                      throttle_duration_sec=WARN_EVERY_S)
+
+    def _check_contact(self) -> None:
+        with self._lock:
+            q = self._sim.q
+        t = self._ros_now() - self._scenario_start
+        status = self._contact.status(q, t)
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._contact_pub.publish(msg)
+        if status.level == DiagnosticStatus.ERROR:
+            self.get_logger().error(status.message, throttle_duration_sec=1.0)
+
+    # -- loop thread
+
+    def _tick(self, t: float) -> None:
+        # Integrate the real elapsed time; a long stall is capped so that the arm never
+        # jumps further than one command timeout's worth of motion in one step.
+        dt = self._loop.period if self._last_step is None else t - self._last_step
+        dt = min(max(dt, 1e-6), self._sim.command_timeout)
+        self._last_step = t
+        with self._lock:
+            q, qd = self._sim.step(dt, t)
+            last = self._last_command
+        self._watch_commands(t, last)
+        msg = JointState(name=self.names, position=q.tolist(), velocity=qd.tolist())
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub.publish(msg)
+
+    def _watch_commands(self, t: float, last: float | None) -> None:
+        """Log once per episode when the command stream stops (ArmSim then brakes)."""
+        fresh = last is not None and t - last <= self._sim.command_timeout
+        if fresh and not self._commanding:
+            self._commanding = True
+        elif self._commanding and not fresh:
+            self._commanding = False
+            self.get_logger().warning(
+                f"no joint command for {self._sim.command_timeout:g} s: stopping the joints")
+
+    def _on_loop_error(self, exc: BaseException) -> None:
+        if not self.context.ok():
+            return  # publishing failed because ROS is shutting down: nothing to report
+        self.get_logger().error(f"simulation loop stopped: {type(exc).__name__}: {exc}")
+
+    def on_shutdown(self) -> None:
+        """Called by `common.run_single_threaded`: stop the loop and report its timing."""
+        self._loop.stop()
+        # ROS may already be shut down (rosout gone): a logger outside the node prints only.
+        rclpy.logging.get_logger(f"{NAME}.shutdown").info(self._loop.summary())
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--help" in own or "-h" in own:
+        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
+        return 0
+    try:
+        return common.run_single_threaded(MockPanda, argv)
+    except (ValueError, ParameterException) as exc:
+        print(f"{NAME}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

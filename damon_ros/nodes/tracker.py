@@ -1,0 +1,334 @@
+"""tracker: the HSV + depth obstacle tracker, a thin ROS adapter over `damon_ros.tracking`.
+
+Colour (``rgb8``/``bgr8``) and aligned depth (``16UC1``/``mono16``/``32FC1``) images in,
+paired by stamp (`FrameSynchronizer`), tracked (`Tracker.update`), and published as one
+``visualization_msgs/MarkerArray`` per frame on ``/damon/obstacles`` in the robot base frame:
+one marker per track (shape, pose, scale; ns = colour class, id = track id, stable while the
+track lives; ``lifetime`` = the tracker's ``max_age_s`` so that a consumer forgets an
+obstacle the tracker stopped publishing) and a DELETE marker when a track is dropped. The
+stamp of every marker is the stamp of the image it was seen in.
+
+Intrinsics come from camera_info (frames are dropped, with one log line, until it arrives);
+the extrinsic is the hand-eye calibration ``base_T_camera`` of the camera file, which also
+names the base frame. A bad image (unsupported encoding, size unlike camera_info, short
+data, all-zero depth, a stamp going backwards) is dropped with one log line per kind of
+problem, repeated at most every ``warn_every_s`` with a count; the node keeps running.
+
+The work per frame is serial (pair, track, publish), so one executor thread serves every
+callback: no locks, and no second Python thread competing for the GIL with the tracking.
+Latency (image stamp -> marker publication) is logged per frame at debug level and summed up
+every ``stats_period_s`` and at shutdown.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from visualization_msgs.msg import MarkerArray
+
+from damon_ros.markers import class_rgba, delete_marker, shape_to_marker, stamp_seconds
+from damon_ros.nodes import common
+from damon_ros.render import Camera, load_camera
+from damon_ros.tracking import (
+    COLOR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    FrameSynchronizer,
+    Track,
+    Tracker,
+    decode_color,
+    decode_depth,
+    load_tracker_config,
+)
+
+NAME = "tracker"
+COLOR_TOPIC = "/camera/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/camera/color/camera_info"
+OBSTACLES_TOPIC = "/damon/obstacles"
+LATENCY_HISTORY = 3000
+
+PARAMETERS = (
+    ("tracker_config", "tracker settings (HSV classes, shape model, tracking); "
+                       "'' = config/tracker.yaml"),
+    ("camera_config", "camera file giving base_T_camera and the base frame; '' = shipped "
+                      "config/camera.yaml (intrinsics come from camera_info)"),
+    ("sync_tolerance_s", "colour and depth frames pair when their stamps differ by <= this"),
+    ("queue_size", "unmatched frames held per stream while waiting for the other"),
+    ("marker_lifetime_s", "marker lifetime (s); 0: the tracker's max_age_s"),
+    ("publish_partial", "also publish obstacles seen only in part (image border, occluder)"),
+    ("stats_period_s", "log frame rate and latency every this many seconds; 0: at shutdown"),
+    ("warn_every_s", "a repeated problem (bad image, ...) is logged at most this often"),
+)
+
+
+# --- pure helpers (tested without ROS) --------------------------------------------------------
+
+
+class ProblemLog:
+    """One log line per kind of problem, then at most one per ``every_s`` with a count.
+
+    rclpy's ``throttle_duration_sec`` throttles per call site, so two different problems at
+    one site would hide each other; here the key is the message with its numbers blanked, so
+    "encoding 'bgra8'" and "size 320x240" are separate problems, while the same problem with
+    a new stamp in its text is not.
+    """
+
+    def __init__(self, log: Callable[[str], None], every_s: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._log = log
+        self.every_s = float(every_s)
+        self._clock = clock
+        self._seen: dict[str, tuple[float, int]] = {}  # key -> (last logged, suppressed)
+
+    @staticmethod
+    def key(message: str) -> str:
+        return re.sub(r"\d+(\.\d+)?", "#", message)
+
+    def report(self, message: str) -> bool:
+        """Log ``message`` unless its kind was logged within ``every_s``; True if logged."""
+        key, now = self.key(message), self._clock()
+        last = self._seen.get(key)
+        if last is not None and now - last[0] < self.every_s:
+            self._seen[key] = (last[0], last[1] + 1)
+            return False
+        suppressed = 0 if last is None else last[1]
+        self._log(message if not suppressed else f"{message} ({suppressed} more since)")
+        self._seen[key] = (now, 0)
+        return True
+
+
+def camera_from_info(msg: CameraInfo, calibration: Camera) -> Camera:
+    """The camera the tracker deprojects with: camera_info's K and size, the file's pose."""
+    k = np.asarray(msg.k, dtype=float)
+    try:
+        return Camera(width=int(msg.width), height=int(msg.height), K=k.reshape(3, 3),
+                      base_T_camera=calibration.base_T_camera, fps=calibration.fps,
+                      frame_id=msg.header.frame_id or calibration.frame_id,
+                      base_frame=calibration.base_frame)
+    except ValueError as exc:
+        raise ValueError(f"camera_info unusable: {exc}") from exc
+
+
+def decode_image(msg: Image, camera: Camera, depth: bool) -> np.ndarray:
+    """A colour (rgb8) or depth (uint16 mm) array, checked against camera_info's size."""
+    what = "depth" if depth else "colour"
+    encodings = DEPTH_ENCODINGS if depth else COLOR_ENCODINGS
+    if msg.encoding not in encodings:
+        raise ValueError(f"{what} image encoding {msg.encoding!r} is not supported; expected "
+                         f"one of {encodings}")
+    if (msg.width, msg.height) != (camera.width, camera.height):
+        raise ValueError(f"{what} image is {msg.width}x{msg.height} but camera_info says "
+                         f"{camera.width}x{camera.height}")
+    if depth:
+        return decode_depth(msg.encoding, msg.height, msg.width, msg.step, msg.data,
+                            bool(msg.is_bigendian))
+    return decode_color(msg.encoding, msg.height, msg.width, msg.step, msg.data)
+
+
+def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], frame_id: str,
+                     stamp: Time, lifetime_s: float, publish_partial: bool
+                     ) -> tuple[MarkerArray, set[tuple[str, int]]]:
+    """One ADD marker per (published) track, a DELETE for each one no longer published.
+
+    Returns the array and the keys it shows, which are ``previous`` for the next frame.
+    """
+    out = MarkerArray()
+    shown = set()
+    for track in tracks:
+        if track.partial and not publish_partial:
+            continue
+        out.markers.append(shape_to_marker(track.shape, track.color, track.id, frame_id, stamp,
+                                           lifetime_s, class_rgba(track.color)))
+        shown.add((track.color, track.id))
+    for ns, id in sorted(previous - shown):
+        out.markers.append(delete_marker(ns, id, frame_id, stamp))
+    return out, shown
+
+
+@dataclass
+class LatencyStats:
+    """Stamp -> publication latencies and processing times of recent frames (seconds)."""
+
+    latency: deque
+    processing: deque
+    frames: int = 0
+
+    @classmethod
+    def empty(cls) -> LatencyStats:
+        return cls(deque(maxlen=LATENCY_HISTORY), deque(maxlen=LATENCY_HISTORY))
+
+    def add(self, latency_s: float, processing_s: float) -> None:
+        self.latency.append(latency_s)
+        self.processing.append(processing_s)
+        self.frames += 1
+
+    def summary(self) -> str:
+        if not self.latency:
+            return "no frames tracked yet"
+        lat = 1e3 * np.asarray(self.latency)
+        proc = 1e3 * np.asarray(self.processing)
+        return (f"latency stamp->publish p50 {np.median(lat):.2f} ms, p95 "
+                f"{np.percentile(lat, 95):.2f} ms, max {lat.max():.2f} ms; processing p50 "
+                f"{np.median(proc):.2f} ms (last {lat.size} frames)")
+
+
+# --- the node ---------------------------------------------------------------------------------
+
+
+class TrackerNode(Node):
+    """Camera topics in, `Tracker.update` per synchronised pair, obstacle markers out."""
+
+    def __init__(self) -> None:
+        super().__init__(NAME)
+        p = self._declare_parameters()
+        self.config = load_tracker_config(p["tracker_config"] or None)
+        self.calibration = load_camera(p["camera_config"] or None)
+        self.base_frame = self.calibration.base_frame
+        self.lifetime_s = p["marker_lifetime_s"] or self.config.max_age_s
+        self.publish_partial = p["publish_partial"]
+        self.sync = FrameSynchronizer(p["sync_tolerance_s"], p["queue_size"])
+        self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
+        self.stats = LatencyStats.empty()
+        self.tracker: Tracker | None = None  # built from the first usable camera_info
+        self._info_key: tuple | None = None
+        self._waiting_logged = False
+        self._shown: set[tuple[str, int]] = set()
+        self._pub = self.create_publisher(MarkerArray, OBSTACLES_TOPIC, 10)
+        qos = qos_profile_sensor_data
+        self.create_subscription(CameraInfo, INFO_TOPIC, self._on_info, qos)
+        self.create_subscription(Image, COLOR_TOPIC, self._on_color, qos)
+        self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, qos)
+        if p["stats_period_s"] > 0.0:
+            self._stats_started = time.monotonic()
+            self._stats_frames = 0
+            self.create_timer(p["stats_period_s"], self._log_stats)
+        self.get_logger().info(
+            f"tracking {sorted(self.config.colors)} as {self.config.shape}s in "
+            f"{self.base_frame} on {OBSTACLES_TOPIC}, marker lifetime {self.lifetime_s:g} s")
+
+    def _declare_parameters(self) -> dict:
+        d = common.declare
+        doc = dict(PARAMETERS)
+        return {
+            "tracker_config": d(self, "tracker_config", "", doc["tracker_config"]),
+            "camera_config": d(self, "camera_config", "", doc["camera_config"]),
+            "sync_tolerance_s": d(self, "sync_tolerance_s", 0.005, doc["sync_tolerance_s"],
+                                  low=0.0, high=1.0),
+            "queue_size": d(self, "queue_size", 10, doc["queue_size"], low=1, high=1000),
+            "marker_lifetime_s": d(self, "marker_lifetime_s", 0.0, doc["marker_lifetime_s"],
+                                   low=0.0, high=3600.0),
+            "publish_partial": d(self, "publish_partial", True, doc["publish_partial"]),
+            "stats_period_s": d(self, "stats_period_s", 10.0, doc["stats_period_s"],
+                                low=0.0, high=3600.0),
+            "warn_every_s": d(self, "warn_every_s", 10.0, doc["warn_every_s"],
+                              low=0.0, high=3600.0),
+        }
+
+    # -- callbacks
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        key = (msg.width, msg.height, tuple(msg.k), msg.header.frame_id)
+        if key == self._info_key:
+            return
+        try:
+            camera = camera_from_info(msg, self.calibration)
+        except ValueError as exc:
+            self.problems.report(str(exc))
+            return
+        self._info_key = key
+        if any(msg.d):
+            self.problems.report(f"camera_info has distortion {list(msg.d)}; the tracker "
+                                 "assumes a rectified image and ignores it")
+        if camera.frame_id != self.calibration.frame_id:
+            self.problems.report(f"camera_info frame {camera.frame_id!r} differs from the "
+                                 f"calibrated {self.calibration.frame_id!r}; using the "
+                                 "calibration's base_T_camera")
+        if self.tracker is None:
+            self.tracker = Tracker(camera, self.config)
+        else:
+            self.tracker.camera = camera  # tracks live in the base frame: they stay valid
+        K = camera.K
+        self.get_logger().info(f"camera_info: {camera.width}x{camera.height}, fx {K[0, 0]:g} "
+                               f"fy {K[1, 1]:g} cx {K[0, 2]:g} cy {K[1, 2]:g}")
+
+    def _on_color(self, msg: Image) -> None:
+        self._on_image(msg, depth=False)
+
+    def _on_depth(self, msg: Image) -> None:
+        self._on_image(msg, depth=True)
+
+    def _on_image(self, msg: Image, depth: bool) -> None:
+        if self.tracker is None:
+            if not self._waiting_logged:
+                self._waiting_logged = True
+                self.get_logger().warning(f"no camera_info on {INFO_TOPIC} yet: dropping "
+                                          "frames until it arrives")
+            return
+        stamp = stamp_seconds(msg.header.stamp)
+        try:
+            image = decode_image(msg, self.tracker.camera, depth)
+            add = self.sync.add_depth if depth else self.sync.add_color
+            pairs = add(stamp, (image, msg.header.stamp))
+        except ValueError as exc:
+            self.problems.report(f"dropped a frame: {exc}")
+            return
+        for pair in pairs:
+            self._track(pair.color, pair.depth)
+
+    def _track(self, color: tuple[np.ndarray, Time], depth: tuple[np.ndarray, Time]) -> None:
+        started = time.perf_counter()
+        rgb, stamp = color
+        try:
+            tracks = self.tracker.update(rgb, depth[0], stamp_seconds(stamp))
+        except ValueError as exc:
+            self.problems.report(f"dropped a frame: {exc}")
+            return
+        markers, self._shown = obstacle_markers(tracks, self._shown, self.base_frame, stamp,
+                                                self.lifetime_s, self.publish_partial)
+        self._pub.publish(markers)
+        latency = self.get_clock().now().nanoseconds * 1e-9 - stamp_seconds(stamp)
+        self.stats.add(latency, time.perf_counter() - started)
+        self.get_logger().debug(f"{len(tracks)} tracks, latency {latency * 1e3:.2f} ms")
+
+    def _log_stats(self) -> None:
+        now = time.monotonic()
+        fps = (self.stats.frames - self._stats_frames) / max(now - self._stats_started, 1e-9)
+        self._stats_started, self._stats_frames = now, self.stats.frames
+        self.get_logger().info(f"{fps:.1f} frames/s tracked; {self.stats.summary()}; "
+                               f"{self.sync.dropped} unpaired frames dropped so far")
+
+    def on_shutdown(self) -> None:
+        """Called by `common.run_single_threaded`: the run's statistics in one line."""
+        self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}")
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--help" in own or "-h" in own:
+        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
+        print("\nROS parameters with defaults: config/tracker_node.yaml; the tracking settings "
+              "themselves: config/tracker.yaml (parameter tracker_config).")
+        return 0
+    try:
+        return common.run_single_threaded(TrackerNode, argv)
+    except (ValueError, OSError, ParameterException) as exc:
+        print(f"{NAME}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

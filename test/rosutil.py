@@ -1,0 +1,363 @@
+"""Harness for tests that run damon_ros nodes over real DDS.
+
+Every ROS test imports this module, so that all of them isolate, start, wait and clean up the
+same way:
+
+- **Isolation.** `next_domain_id` hands each test its own ``ROS_DOMAIN_ID`` in 1..100: a
+  counter per test file, starting from a base derived (CRC-32) from the file's name and this
+  pytest process's id. Fast DDS on Linux allows domains 0..101 (higher ones run out of UDP
+  ports); 0 is left alone because that is where anybody's unconfigured ROS tools live. The
+  process id is mixed in because several pytest runs may share this machine at once; with
+  ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` nothing from another host can interfere.
+- **Environment.** `node_env` is the caller's environment plus
+  `damon_ros.nodes.common.ros_environment` (domain, localhost discovery, Fast DDS with the
+  shared-memory profile), unbuffered Python, uncoloured logs, and a ROS log directory under
+  the test's temporary folder instead of ``~/.ros``.
+- **Processes.** `start_node` runs ``python -m damon_ros.nodes.<module> --ros-args ...`` with
+  stdout and stderr in a log file (`read_log` shows it when an assertion fails);
+  `stop_node` sends SIGINT, then SIGTERM, then SIGKILL, each wait bounded.
+- **In-process client.** `RosClient` (a context manager) owns an ``rclpy.Context``, a node
+  and a single-threaded executor; `RosClient.spin_until` always returns within its timeout.
+
+Run ``python test/rosutil.py image-latency`` to measure a 640x480 rgb8 image between two
+processes with and without the shared-memory profile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile
+
+from damon_ros.nodes.common import ros_environment
+
+ROOT = Path(__file__).resolve().parents[1]
+
+DOMAIN_LOW, DOMAIN_HIGH = 1, 100
+_domain_counters: dict[str, int] = {}
+
+
+def next_domain_id(test_file: str) -> int:
+    """A fresh ``ROS_DOMAIN_ID`` in 1..100 for the next test of ``test_file`` (see module doc)."""
+    stem = Path(test_file).stem
+    span = DOMAIN_HIGH - DOMAIN_LOW + 1
+    base = zlib.crc32(f"{stem}:{os.getpid()}".encode()) % span
+    k = _domain_counters.get(stem, 0)
+    _domain_counters[stem] = k + 1
+    return DOMAIN_LOW + (base + k) % span
+
+
+def node_env(domain_id: int, log_dir: Path | None = None,
+             base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Environment for a node process (or this one) on the private graph of ``domain_id``."""
+    env = dict(os.environ if base is None else base)
+    env.update(ros_environment(domain_id))
+    env.update({
+        "PYTHONUNBUFFERED": "1",
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+        "ROS_LOG_DIR": str(log_dir if log_dir is not None else Path(tempfile.gettempdir())),
+    })
+    return env
+
+
+def format_param(value) -> str:
+    """``-p name:=value`` text: YAML that rcl parses back to the same type.
+
+    JSON is YAML, and quoting strings stops "1.0" or "true" from turning into numbers.
+    """
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float, str)):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    raise ValueError(f"parameter value {value!r} is not a bool, number, string or list")
+
+
+def start_node(module: str, params: Mapping[str, object] | None, env: Mapping[str, str],
+               log_path: Path, params_file: Path | None = None,
+               ros_args: Sequence[str] = ()) -> subprocess.Popen:
+    """Start ``damon_ros.nodes.<module>`` in its own process; output goes to ``log_path``.
+
+    Parameters from ``params`` come after ``params_file`` on the command line, so they
+    override it. The returned Popen carries ``log_path`` for `read_log` / `stop_node`.
+    """
+    cmd = [sys.executable, "-m", f"damon_ros.nodes.{module}", "--ros-args"]
+    if params_file is not None:
+        cmd += ["--params-file", str(params_file)]
+    for name, value in (params or {}).items():
+        cmd += ["-p", f"{name}:={format_param(value)}"]
+    cmd += list(ros_args)
+    log_path = Path(log_path)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(env), stdout=log,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True)
+    proc.log_path = log_path
+    return proc
+
+
+def read_log(proc: subprocess.Popen) -> str:
+    path = getattr(proc, "log_path", None)
+    if path is None or not Path(path).exists():
+        return ""
+    return Path(path).read_text(errors="replace")
+
+
+def log_lines(proc: subprocess.Popen, needle: str) -> list[str]:
+    """Lines of the node's log that contain ``needle``."""
+    return [line for line in read_log(proc).splitlines() if needle in line]
+
+
+def stop_node(proc: subprocess.Popen, timeout: float = 5.0,
+              first_signal: int = signal.SIGINT) -> tuple[int, str]:
+    """Stop a node: ``first_signal``, then SIGTERM, then SIGKILL, each waiting ``timeout``.
+
+    Returns (exit code, log text). A process that ended by itself is just reaped.
+    """
+    for sig in (first_signal, signal.SIGTERM, signal.SIGKILL):
+        if proc.poll() is not None:
+            break
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            continue
+    if proc.poll() is None:
+        proc.wait(timeout=timeout)
+    return proc.returncode, read_log(proc)
+
+
+@dataclass
+class Recorder:
+    """Messages of one subscription with their arrival times (``time.monotonic()``)."""
+
+    messages: list = field(default_factory=list)
+    times: list[float] = field(default_factory=list)
+
+    def __call__(self, msg) -> None:
+        self.times.append(time.monotonic())
+        self.messages.append(msg)
+
+    def __len__(self) -> int:
+        return len(self.messages)
+
+    @property
+    def last(self):
+        return self.messages[-1] if self.messages else None
+
+    def clear(self) -> None:
+        self.messages.clear()
+        self.times.clear()
+
+    def since(self, t: float) -> list:
+        """Messages that arrived at or after monotonic time ``t``."""
+        return [m for m, ti in zip(self.messages, self.times, strict=True) if ti >= t]
+
+
+class RosClient:
+    """An in-process ROS participant for a test: own context, node and executor.
+
+    Use as ``with RosClient(domain_id) as ros: ...``; leaving the block destroys the node
+    and shuts the context down, even when the test failed.
+    """
+
+    def __init__(self, domain_id: int, name: str = "test_client"):
+        self.domain_id = domain_id
+        self.name = name
+        self.context: Context | None = None
+        self.node = None
+        self.executor: SingleThreadedExecutor | None = None
+
+    def __enter__(self) -> RosClient:
+        # The RMW reads these once per process; the domain itself is passed explicitly.
+        for key, value in ros_environment(self.domain_id).items():
+            if key != "ROS_DOMAIN_ID":
+                os.environ[key] = value
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        try:
+            self.node = rclpy.create_node(self.name, context=self.context)
+            self.executor = SingleThreadedExecutor(context=self.context)
+            self.executor.add_node(self.node)
+        except Exception:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.executor is not None:
+            self.executor.shutdown(timeout_sec=1.0)
+            self.executor = None
+        if self.node is not None:
+            self.node.destroy_node()
+            self.node = None
+        if self.context is not None:
+            rclpy.try_shutdown(context=self.context)
+            self.context = None
+
+    def record(self, msg_type, topic: str, qos: QoSProfile | int = 50) -> Recorder:
+        recorder = Recorder()
+        self.node.create_subscription(msg_type, topic, recorder, qos)
+        return recorder
+
+    def publisher(self, msg_type, topic: str, qos: QoSProfile | int = 10):
+        return self.node.create_publisher(msg_type, topic, qos)
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Spin until ``predicate()`` is true; False once ``timeout_s`` has passed.
+
+        Each wait is at most 20 ms, so the call returns within the timeout plus the duration
+        of one callback.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if predicate():
+                return True
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                return bool(predicate())
+            self.executor.spin_once(timeout_sec=min(remaining, 0.02))
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def wait_for_subscribers(self, publisher, count: int = 1, timeout_s: float = 10.0) -> bool:
+        """Discovery is asynchronous: wait until ``count`` readers matched ``publisher``."""
+        return self.spin_until(lambda: publisher.get_subscription_count() >= count, timeout_s)
+
+    def wait_for_publishers(self, topic: str, count: int = 1, timeout_s: float = 10.0) -> bool:
+        return self.spin_until(lambda: self.node.count_publishers(topic) >= count, timeout_s)
+
+
+# ------------------------------------------------------------------ image transport latency
+
+IMAGE_TOPIC = "/damon_test/image"
+
+
+def _image_publisher(domain_id: int, count: int, rate_hz: float) -> int:
+    """Child process: publish ``count`` 640x480 rgb8 images stamped just before publishing."""
+    import numpy as np
+    from sensor_msgs.msg import Image
+
+    rclpy.init(domain_id=domain_id)
+    node = rclpy.create_node("image_latency_pub")
+    pub = node.create_publisher(Image, IMAGE_TOPIC, 5)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    deadline = time.monotonic() + 15.0
+    while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    pixels = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    msg = Image(height=480, width=640, encoding="rgb8", step=640 * 3)
+    msg.data = pixels.tobytes()
+    for _ in range(count):
+        now = time.time_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
+        pub.publish(msg)
+        executor.spin_once(timeout_sec=1.0 / rate_hz)
+    executor.spin_once(timeout_sec=0.5)  # let the reliable writer finish the last sample
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def _image_subscriber(domain_id: int, count: int, timeout_s: float) -> int:
+    """Child process: receive images and print their latencies (ms) as one JSON line."""
+    from sensor_msgs.msg import Image
+
+    rclpy.init(domain_id=domain_id)
+    node = rclpy.create_node("image_latency_sub")
+    latencies: list[float] = []
+
+    def on_image(msg: Image) -> None:
+        sent = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        latencies.append((time.time_ns() - sent) * 1e-6)
+
+    node.create_subscription(Image, IMAGE_TOPIC, on_image, 5)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    deadline = time.monotonic() + timeout_s
+    while len(latencies) < count and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    print(json.dumps(latencies), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def measure_image_latency(domain_id: int, shm_profile: bool, count: int = 60,
+                          rate_hz: float = 20.0, timeout_s: float = 30.0) -> dict[str, float]:
+    """One-way latency of 640x480 rgb8 images between two processes (median/p90/max, ms).
+
+    Both ends are child processes because Fast DDS reads its profile once per process.
+    ``shm_profile`` False runs them with Fast DDS's built-in transports instead.
+    """
+    env = node_env(domain_id)
+    if not shm_profile:
+        env.pop("FASTRTPS_DEFAULT_PROFILES_FILE")
+    me = [sys.executable, str(Path(__file__).resolve())]
+    common = ["--domain", str(domain_id), "--count", str(count)]
+    sub = subprocess.Popen(me + ["_image_sub", *common, "--timeout", str(timeout_s)], env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    pub = subprocess.Popen(me + ["_image_pub", *common, "--rate", str(rate_hz)], env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = sub.communicate(timeout=timeout_s + 10.0)
+    finally:
+        for proc in (sub, pub):
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait(timeout=5.0)
+    if sub.returncode != 0 or not out.strip():
+        raise RuntimeError(f"image subscriber failed ({sub.returncode}): {err[-2000:]}")
+    import numpy as np
+
+    ms = np.array(json.loads(out.strip().splitlines()[-1]))[5:]  # skip the discovery warm-up
+    if ms.size == 0:
+        return {"received": 0}
+    return {"received": int(ms.size + 5), "median_ms": float(np.median(ms)),
+            "p90_ms": float(np.percentile(ms, 90)), "max_ms": float(ms.max())}
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python test/rosutil.py",
+                                     description="ROS test harness utilities.")
+    parser.add_argument("mode", choices=("image-latency", "_image_pub", "_image_sub"))
+    parser.add_argument("--domain", type=int, default=57)
+    parser.add_argument("--count", type=int, default=100)
+    parser.add_argument("--rate", type=float, default=20.0)
+    parser.add_argument("--timeout", type=float, default=30.0)
+    args = parser.parse_args(argv)
+    if args.mode == "_image_pub":
+        return _image_publisher(args.domain, args.count, args.rate)
+    if args.mode == "_image_sub":
+        return _image_subscriber(args.domain, args.count, args.timeout)
+    for shm in (False, True):
+        stats = measure_image_latency(args.domain, shm, args.count, args.rate, args.timeout)
+        label = "shared-memory profile" if shm else "Fast DDS defaults    "
+        print(f"640x480 rgb8, {label}: " + ", ".join(
+            f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in stats.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

@@ -1,0 +1,295 @@
+"""controller as a real process over real DDS, closed loop with mock_panda.
+
+One controller and one mock_panda, both started from their ``config/*.yaml`` (the controller
+with the planner heartbeat watchdog on, fed by a fake planner in this test), serve the
+tests of this module. The fixture first starts the controller alone and checks that it
+commands nothing before the first joint state, and at the end checks that SIGINT/SIGTERM
+end both nodes with exit code 0. Stale joint states are made exact by freezing mock_panda
+with SIGSTOP: the last joint state it published is then known from its stamp.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rosutil
+from builtin_interfaces.msg import Duration
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from damon_ros.limits import joint_limits
+
+CONFIG = rosutil.ROOT / "config"
+NAMES = [f"panda_joint{i}" for i in range(1, 8)]
+READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+LIMITS = joint_limits("panda")
+JS_TIMEOUT_S = 0.05  # joint_state_timeout_s of config/controller.yaml
+HEARTBEAT_S = 0.5  # planner_heartbeat_timeout_s given to the controller
+TOLERANCE = 2e-3  # rad, goal tolerance of the closed loop
+
+
+def trajectory(times, positions, velocities=None, names=NAMES) -> JointTrajectory:
+    """A JointTrajectory with a zero stamp (start on arrival), points in ``names`` order."""
+    msg = JointTrajectory(joint_names=list(names))
+    for k, t in enumerate(times):
+        sec = int(t)
+        point = JointTrajectoryPoint(
+            positions=[float(x) for x in positions[k]],
+            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9))))
+        if velocities is not None:
+            point.velocities = [float(x) for x in velocities[k]]
+        msg.points.append(point)
+    return msg
+
+
+def _log(proc: subprocess.Popen, name: str) -> str:
+    return f"\n--- {name} log ---\n" + rosutil.read_log(proc)[-4000:]
+
+
+@dataclass
+class Arm:
+    ros: rosutil.RosClient
+    mock: subprocess.Popen
+    controller: subprocess.Popen
+    states: rosutil.Recorder
+    commands: rosutil.Recorder
+    controller_state: rosutil.Recorder
+    trajectories: object
+    heartbeat_on: bool = True  # the fake planner's /damon/planner_status at 20 Hz
+    commands_before_first_state: int = -1
+
+    def q(self) -> np.ndarray:
+        return np.array(self.states.last.position)
+
+    def settle(self, timeout_s: float = 3.0) -> bool:
+        return self.ros.spin_until(
+            lambda: np.max(np.abs(self.states.last.velocity)) < 1e-4, timeout_s)
+
+    def first_command_below(self, t: float, speed: float) -> float | None:
+        """Arrival (monotonic) of the first command after ``t`` with all |u| <= ``speed``."""
+        for msg, arrival in zip(self.commands.messages, self.commands.times, strict=True):
+            if arrival > t and np.max(np.abs(msg.data)) <= speed:
+                return arrival
+        return None
+
+    def logs(self) -> str:
+        return _log(self.controller, "controller") + _log(self.mock, "mock_panda")
+
+
+def _start_arm(ros: rosutil.RosClient, env: dict, tmp: Path) -> Arm:
+    controller = rosutil.start_node("controller",
+                                    {"planner_heartbeat_timeout_s": HEARTBEAT_S}, env,
+                                    tmp / "controller.log", params_file=CONFIG / "controller.yaml")
+    arm = Arm(ros, None, controller,
+              ros.record(JointState, "/joint_states"),
+              ros.record(Float64MultiArray, "/damon/joint_commands"),
+              ros.record(JointState, "/damon/controller_state"),
+              ros.publisher(JointTrajectory, "/damon/joint_trajectory"))
+    beats = ros.publisher(DiagnosticArray, "/damon/planner_status")
+    planner = DiagnosticArray(status=[DiagnosticStatus(name="fake planner")])
+    ros.node.create_timer(0.05, lambda: arm.heartbeat_on and beats.publish(planner))
+    # The controller alone: its command publisher is up, yet it commands nothing.
+    ros.wait_for_publishers("/damon/joint_commands", 1, 20.0)
+    ros.spin_for(0.3)
+    arm.commands_before_first_state = len(arm.commands)
+    arm.mock = rosutil.start_node("mock_panda", None, env, tmp / "mock_panda.log",
+                                  params_file=CONFIG / "mock_panda.yaml")
+    return arm
+
+
+@pytest.fixture(scope="module")
+def arm(tmp_path_factory):
+    domain = rosutil.next_domain_id(__file__)
+    tmp = tmp_path_factory.mktemp("closed_loop")
+    env = rosutil.node_env(domain, tmp)
+    procs = []
+    try:
+        with rosutil.RosClient(domain) as ros:
+            arm = _start_arm(ros, env, tmp)
+            procs = [arm.controller, arm.mock]
+            assert ros.spin_until(lambda: len(arm.commands) > 10 and len(arm.states) > 10,
+                                  20.0), arm.logs()
+            assert ros.wait_for_subscribers(arm.trajectories, 1, 10.0), arm.logs()
+            yield arm
+    finally:
+        t0 = time.monotonic()
+        results = [rosutil.stop_node(p, first_signal=sig)
+                   for p, sig in zip(procs, (signal.SIGTERM, signal.SIGINT), strict=False)]
+        stop_s = time.monotonic() - t0
+    for code, log in results:
+        assert code == 0, log[-4000:]
+        assert "loop timing" in log
+    assert stop_s < 5.0
+
+
+def test_nothing_is_commanded_before_the_first_joint_state(arm: Arm):
+    assert arm.commands_before_first_state == 0
+
+
+def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + np.array([0.3, -0.2, 0.25, 0.3, -0.3, 0.2, 0.4])
+    mid = 0.5 * (q0 + goal)
+    # Joints listed in another order than the controller's: reordering by name is accepted.
+    order = [6, 0, 3, 1, 5, 2, 4]
+    rows = np.array([mid, goal])[:, order]
+    velocities = np.array([0.5 * (goal - q0) / 0.75, np.zeros(7)])[:, order]
+    start = len(arm.commands)
+    arm.trajectories.publish(trajectory([0.75, 1.5], rows, velocities,
+                                        names=[NAMES[j] for j in order]))
+    sent = time.monotonic()
+    assert arm.ros.spin_until(lambda: np.max(np.abs(arm.q() - goal)) < TOLERANCE, 5.0), \
+        arm.logs()
+    reached = time.monotonic() - sent
+    assert 1.3 < reached < 2.5, reached  # follows the timing, not just the end point
+    arm.ros.spin_for(0.5)
+    assert np.max(np.abs(arm.q() - goal)) < TOLERANCE  # holds
+    held = arm.controller_state.last
+    assert list(held.name) == NAMES
+    np.testing.assert_allclose(held.position, goal, atol=1e-9)  # desired = goal
+    np.testing.assert_allclose(held.velocity, 0.0, atol=1e-9)
+    assert np.max(np.abs(held.effort)) < TOLERANCE  # error
+    u = np.array([c.data for c in arm.commands.messages[start:]])
+    assert u.shape[1] == 7
+    assert np.all(np.abs(u) <= LIMITS.velocity + 1e-9)
+    assert np.max(np.abs(u)) > 0.2  # it did move by commanding velocities
+    assert "accepted trajectory" in rosutil.read_log(arm.controller)
+
+
+@pytest.mark.parametrize("case", ["unknown joint", "times", "nan", "limits"])
+def test_rejects_a_malformed_trajectory_and_stays_still(arm: Arm, case: str):
+    assert arm.settle()
+    q0 = arm.q()
+    target = q0 + 0.2
+    times, rows, names = [0.5, 1.0], np.array([q0 + 0.1, target]), list(NAMES)
+    if case == "unknown joint":
+        names[6] = "panda_joint8"
+    elif case == "times":
+        times = [1.0, 1.0]
+    elif case == "nan":
+        rows[1, 3] = np.nan
+    else:
+        rows[1, 3] = LIMITS.upper[3] + 0.5
+    before = len(rosutil.log_lines(arm.controller, "rejected trajectory"))
+    arm.trajectories.publish(trajectory(times, rows, names=names))
+    arm.ros.spin_until(
+        lambda: len(rosutil.log_lines(arm.controller, "rejected trajectory")) > before, 3.0)
+    arm.ros.spin_for(0.3)
+    lines = rosutil.log_lines(arm.controller, "rejected trajectory")
+    assert len(lines) == before + 1, arm.logs()
+    assert np.max(np.abs(arm.q() - q0)) < 1e-4  # the arm did not move
+    assert np.max(np.abs(arm.commands.last.data)) < 1e-3
+    expected = {"unknown joint": "panda_joint8", "times": "strictly increasing",
+                "nan": "NaN", "limits": "outside"}[case]
+    assert expected in lines[-1], lines[-1]
+
+
+def test_empty_trajectory_stops_and_holds(arm: Arm):
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    arm.trajectories.publish(trajectory([3.0], [goal], [np.zeros(7)]))
+    arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.02, 3.0)
+    arm.trajectories.publish(JointTrajectory(joint_names=NAMES))  # no points: stop
+    assert arm.settle(), arm.logs()
+    q_stop = arm.q()
+    assert q0[0] + 0.02 < q_stop[0] < goal[0] - 0.1  # stopped on the way
+    arm.ros.spin_for(0.5)
+    assert np.max(np.abs(arm.q() - q_stop)) < 1e-3  # and holds there
+    assert "empty trajectory" in rosutil.read_log(arm.controller)
+
+
+def test_silent_planner_holds_the_arm(arm: Arm):
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    arm.trajectories.publish(trajectory([2.0], [goal], [np.zeros(7)]))
+    arm.ros.spin_for(0.3)
+    lines = len(rosutil.log_lines(arm.controller, "no /damon/planner_status"))
+    arm.heartbeat_on = False
+    silent = time.monotonic()
+    try:
+        # Holding is position control: the command settles near zero, not exactly at it.
+        assert arm.ros.spin_until(lambda: arm.first_command_below(silent, 0.01), 3.0), \
+            arm.logs()
+        stopped = arm.first_command_below(silent, 0.01) - silent
+        assert HEARTBEAT_S - 0.06 < stopped < HEARTBEAT_S + 0.3, stopped
+        assert arm.settle()
+        arm.ros.spin_for(0.2)
+        assert arm.q()[0] < goal[0] - 0.05  # it never got there
+        np.testing.assert_allclose(arm.controller_state.last.velocity, 0.0)  # holding
+        assert len(rosutil.log_lines(arm.controller, "no /damon/planner_status")) == lines + 1
+    finally:
+        arm.heartbeat_on = True
+
+
+def _braking_start(commands: rosutil.Recorder, zero: float) -> float:
+    """Arrival of the first command of the monotone ramp that ends at ``zero``.
+
+    With frozen joint states the tracking error only grows, so the command grows until the
+    controller declares the states stale; from then on it falls monotonically to zero.
+    """
+    times = np.array(commands.times)
+    u = np.array([np.max(np.abs(m.data)) for m in commands.messages])
+    k = int(np.searchsorted(times, zero))
+    while k > 0 and u[k - 1] >= u[k]:
+        k -= 1
+    return float(times[k])
+
+
+def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
+    assert arm.settle()
+    q0 = arm.q()
+    lines = len(rosutil.log_lines(arm.controller, "joint states stale"))
+    arm.trajectories.publish(trajectory([2.0], [q0 + np.array([0.3, 0, 0, 0, 0, 0, 0])],
+                                        [np.zeros(7)]))
+    arm.ros.spin_for(0.5)  # accelerating along the quintic
+    arm.mock.send_signal(signal.SIGSTOP)  # joint states stop, exactly
+    try:
+        arm.ros.spin_for(0.3)
+        # The last state the mock published, from its stamp, on this process's monotonic clock.
+        stamp = arm.states.last.header.stamp
+        last_state = stamp.sec + 1e-9 * stamp.nanosec - (time.time() - time.monotonic())
+        assert arm.ros.spin_until(lambda: arm.first_command_below(last_state, 0.0), 2.0)
+        zero = arm.first_command_below(last_state, 0.0)
+        braking = _braking_start(arm.commands, zero) - last_state
+        to_zero = zero - last_state
+    finally:
+        arm.mock.send_signal(signal.SIGCONT)
+    print(f"\nstale joint states: braking after {1e3 * braking:.1f} ms, zero command after "
+          f"{1e3 * to_zero:.1f} ms (timeout {1e3 * JS_TIMEOUT_S:.0f} ms)")
+    # Braking starts once the states are JS_TIMEOUT_S old; the ramp to zero keeps to the
+    # acceleration and jerk limits (~20 ms from this speed). Margins absorb a loaded machine.
+    assert JS_TIMEOUT_S - 0.005 < braking < JS_TIMEOUT_S + 0.04, braking
+    assert to_zero < JS_TIMEOUT_S + 0.05 + 0.04, to_zero
+    assert len(rosutil.log_lines(arm.controller, "joint states stale")) == lines + 1
+    assert arm.ros.spin_until(
+        lambda: "joint states are back" in rosutil.read_log(arm.controller), 3.0)
+    assert arm.settle()
+    q_hold = arm.q()
+    arm.ros.spin_for(0.3)
+    assert np.max(np.abs(arm.q() - q_hold)) < 1e-3  # holds where it is, no lurch
+
+
+def test_help_and_bad_parameters(tmp_path: Path):
+    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.controller", "-h"],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0
+    assert "joint_state_timeout_s" in out.stdout and "i_clamp" in out.stdout
+    env = rosutil.node_env(rosutil.next_domain_id(__file__), tmp_path)
+    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.controller", "--ros-args",
+                          "-p", "interpolation:=bspline"], capture_output=True, text=True,
+                         timeout=30, env=env)
+    assert out.returncode == 2
+    assert "interpolation" in out.stderr and "bspline" in out.stderr
+    assert "Traceback" not in out.stderr
