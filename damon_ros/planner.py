@@ -156,12 +156,14 @@ class Planner:
         self.config = config or PlannerConfig()
         self.risk = risk
         self.goal_q: np.ndarray | None = None
-        self._safe_ids = np.flatnonzero(graph.safe)
-        self._tree = cKDTree(graph.q[self._safe_ids])
+        # graph None: a subclass finds routes another way (the OMPL baselines)
+        self._safe_ids = np.flatnonzero(graph.safe) if graph is not None else np.zeros(0, int)
+        self._tree = cKDTree(graph.q[self._safe_ids]) if graph is not None else None
 
     def warm_up(self) -> None:
         """Compile and cache the collision kernels now, not on the first goal."""
-        q = self.graph.q[self._safe_ids[0]]
+        q = self.graph.q[self._safe_ids[0]] if self.graph is not None else np.array(
+            [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
@@ -435,10 +437,11 @@ class Planner:
             return PlanResult(False, "nothing to escape from")
         rng = rng or np.random.default_rng(0)
         current = self.clearance(q_now, scene.ahead)
-        _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))
-        near = self.graph.q[self._safe_ids[np.atleast_1d(idx)]]
         jitter = self.limits.clip(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
-        pool = np.vstack([near, jitter])
+        pool = jitter
+        if self._tree is not None:
+            _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))
+            pool = np.vstack([self.graph.q[self._safe_ids[np.atleast_1d(idx)]], jitter])
         clear = self.robot.distances(pool, scene.ahead)
         query = _Query(self, q_now, q_now, scene)
         for i in np.argsort(-clear)[:24]:

@@ -1,0 +1,130 @@
+"""The certified planner on the shipped default model (issue: DAMON core, "Done when")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from damon_ros.limits import joint_limits
+from damon_ros.model import DamonModel
+from damon_ros.planner import Planner, PoseGoal
+from damon_ros.robot import Robot
+from damon_ros.runtime import ReactivePlanner, swept
+from damon_ros.scenario import load_public_scenarios
+from damon_ros.shapes import Shape
+
+SCENARIOS = load_public_scenarios()
+
+
+@pytest.fixture(scope="module")
+def model() -> DamonModel:
+    return DamonModel.load()
+
+
+@pytest.fixture(scope="module")
+def robots() -> tuple[Robot, Robot]:
+    return Robot("fast"), Robot("mesh")
+
+
+@pytest.fixture()
+def planner(model, robots) -> Planner:
+    p = Planner(model.graph, robots[0], joint_limits("panda"))
+    p.warm_up()
+    return p
+
+
+def _goal(scenario) -> PoseGoal:
+    g = scenario.goal
+    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
+
+
+def _mesh_clearance_along(mesh: Robot, path: np.ndarray, obstacles, step: float = 0.02):
+    worst = np.inf
+    for a, b in zip(path, path[1:], strict=False):
+        n = max(1, int(np.ceil(np.max(np.abs(b - a)) / step)))
+        states = a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)
+        worst = min(worst, float(mesh.distances(states, obstacles).min()))
+        assert not any(mesh.self_collision(q) for q in states[::5])
+    return worst
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS, ids=lambda s: s.name)
+def test_every_public_scenario_gets_a_plan_certified_by_the_exact_meshes(scenario, planner,
+                                                                          robots):
+    _, mesh = robots
+    obstacles = scenario.obstacles_at(0.0)
+    result = planner.plan(scenario.start, _goal(scenario), obstacles)
+    assert result.success, result.reason
+    assert np.allclose(result.path[0], scenario.start)
+    position, _ = mesh.tcp_pose(result.path[-1])
+    assert np.linalg.norm(position - scenario.goal.position) <= scenario.goal.position_tolerance
+    assert _mesh_clearance_along(mesh, result.path, obstacles) > 0.0
+
+
+def test_trajectories_respect_the_limit_profile(planner):
+    limits = joint_limits("panda")
+    for scenario in SCENARIOS[:6]:
+        result = planner.plan(scenario.start, _goal(scenario), scenario.obstacles_at(0.0))
+        tr = result.trajectory
+        assert np.all(np.abs(tr.velocities) <= limits.velocity + 1e-9)
+        assert np.all(np.abs(tr.accelerations) <= limits.acceleration + 1e-6)
+        jerk = np.diff(tr.accelerations, axis=0) / np.diff(tr.times)[:, None]
+        assert np.all(np.abs(jerk) <= limits.jerk * 1.01)
+        assert np.all(tr.positions >= limits.lower - 1e-9)
+        assert np.all(tr.positions <= limits.upper + 1e-9)
+        assert np.allclose(tr.positions[-1], result.path[-1], atol=1e-9)
+
+
+def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(planner, robots):
+    _, mesh = robots
+    scenario = next(s for s in SCENARIOS if s.name == "B-001")
+    result = planner.plan(scenario.start, _goal(scenario), [])
+    assert result.success
+    # put a ball on the middle of the first segment's swept TCP path
+    mid = 0.5 * (result.path[0] + result.path[1])
+    ball = Shape("sphere", (0.06,), mesh.fk(mid)[:3, 3])
+    runtime = ReactivePlanner(planner)
+    runtime._execute(result, 0.0)
+    event = runtime.update(0.0, scenario.start, [(ball, np.zeros(3))])
+    assert event is not None and event.kind == "trajectory", event
+    assert "blocks" in event.reason
+    assert _mesh_clearance_along(mesh, event.result.path, [ball]) > 0.0
+
+
+def test_a_goal_inside_an_obstacle_is_refused_with_a_reason(planner):
+    scenario = SCENARIOS[0]
+    engulf = Shape("sphere", (0.15,), scenario.goal.position)
+    result = planner.plan(scenario.start, _goal(scenario), [engulf])
+    assert not result.success
+    assert "goal pose refused" in result.reason and "collide" in result.reason
+
+
+def test_a_goal_out_of_reach_is_refused_with_a_reason(planner):
+    goal = PoseGoal(np.array([1.6, 0.0, 0.4]), np.array([1.0, 0.0, 0.0, 0.0]))
+    result = planner.plan(SCENARIOS[0].start, goal, [])
+    assert not result.success and "reach" in result.reason
+
+
+def test_no_route_means_no_path_and_a_reason(planner, robots):
+    fast, _ = robots
+    scenario = SCENARIOS[0]
+    # a wall of boxes around the arm that leaves the start free but no way out
+    start_tcp = fast.fk(scenario.start)[:3, 3]
+    cage = [Shape("box", (0.05, 1.6, 1.6), [start_tcp[0] + 0.12, 0.0, 0.5]),
+            Shape("box", (1.6, 0.05, 1.6), [0.3, start_tcp[1] + 0.15, 0.5]),
+            Shape("box", (1.6, 0.05, 1.6), [0.3, start_tcp[1] - 0.15, 0.5])]
+    if fast.clearance(scenario.start, cage).distance <= 0:
+        pytest.skip("the cage touches this start state")
+    goal = PoseGoal(np.array([0.3, -0.6, 0.3]), np.array([1.0, 0.0, 0.0, 0.0]))
+    result = planner.plan(scenario.start, goal, cage)
+    assert not result.success
+    assert len(result.path) == 0 and result.trajectory is None
+    assert result.reason
+
+
+def test_swept_sphere_contains_its_motion():
+    ball = Shape("sphere", (0.05,), [0.5, 0.0, 0.5])
+    s = swept(ball, np.array([0.4, 0.0, 0.0]), 0.5)
+    for t in np.linspace(0.0, 0.5, 6):
+        centre = ball.position + t * np.array([0.4, 0.0, 0.0])
+        assert np.linalg.norm(centre - s.position) + 0.05 <= s.size[0] + 1e-12
