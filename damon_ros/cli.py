@@ -25,6 +25,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                     "build the two-layer latent graph and fit the GMR into a model directory"),
     "analyze": ("damon_ros.analysis", "main",
                 "GMR runtime model, graph-size sweep (N*) and the paper's plots"),
+    "bench": ("damon_ros.bench", "main",
+              "closed-loop benchmark vs OMPL on scenarios and MotionBenchMaker problems"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",

@@ -71,6 +71,7 @@ class PlannerConfig:
     trajectory_dt: float = 0.01
     ik_seeds: int = 16
     time_budget_s: float = 0.25  # a route search gives up (and says so) after this long
+    exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
 
 @dataclass
@@ -125,7 +126,8 @@ class _Query:
         known = self.valid.get(key)
         if known is None:
             q0, q1 = self.config(u), self.config(v)
-            known = self.segment_certified(q0, q1, first=self.START in key)
+            known = self.segment_certified(q0, q1, first=self.START in key,
+                                           last=self.GOAL in key)
             if known and key[0] < 0:  # not a graph edge: self-collision was not verified offline
                 known = self.p.robot.segment_self_collision_free(q0, q1)
             self.valid[key] = known
@@ -133,12 +135,21 @@ class _Query:
             self.rejected += not known
         return known
 
-    def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool) -> bool:
+    def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool,
+                          last: bool = False) -> bool:
         """Obstacle check of one segment: a first segment against the obstacles now with the
-        start margin, any other against the swept obstacles with the full margin."""
+        start margin, any other against the swept obstacles with the full margin. A last
+        segment into a goal that only the exact meshes accept (a grasp pose close to an
+        object) is certified on the exact meshes when the conservative model refuses it."""
         if first:
-            return self.p.segment_free(q0, q1, self.scene.now, self.start_margin)
-        return self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
+            free = self.p.segment_free(q0, q1, self.scene.now, self.start_margin)
+        else:
+            free = self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
+        if not free and last and self.p.goal_exact:
+            free = self.p.exact.segment_free(q0, q1, self.scene.ahead,
+                                             margin=self.p.config.exact_goal_margin,
+                                             resolution=self.p.config.resolution)
+        return free
 
 
 class Planner:
@@ -156,9 +167,20 @@ class Planner:
         self.config = config or PlannerConfig()
         self.risk = risk
         self.goal_q: np.ndarray | None = None
+        self.goal_exact = False  # the goal is certified on the exact meshes only
+        self._exact = None
         # graph None: a subclass finds routes another way (the OMPL baselines)
         self._safe_ids = np.flatnonzero(graph.safe) if graph is not None else np.zeros(0, int)
         self._tree = cKDTree(graph.q[self._safe_ids]) if graph is not None else None
+
+    @property
+    def exact(self):
+        """The exact-mesh model, for goals the conservative model cannot certify."""
+        if self._exact is None:
+            from damon_ros.robot import Robot
+
+            self._exact = Robot("mesh", self.limits.profile)
+        return self._exact
 
     def warm_up(self) -> None:
         """Compile and cache the collision kernels now, not on the first goal."""
@@ -211,9 +233,13 @@ class Planner:
                 return None, "goal joints are outside the joint limits"
         if self.robot.self_collision(q_goal):
             return None, "goal configuration is in self-collision"
+        self.goal_exact = False
         if obstacles and self.clearance(q_goal, obstacles) <= self.config.margin:
-            return None, (f"goal configuration is within the {self.config.margin:.3f} m margin "
-                          "of an obstacle")
+            exact = float(self.exact.clearance(q_goal, obstacles).distance)
+            if exact <= self.config.exact_goal_margin:
+                return None, (f"goal configuration is {exact:.3f} m from an obstacle on the "
+                              f"exact meshes (needs > {self.config.exact_goal_margin} m)")
+            self.goal_exact = True
         return q_goal, ""
 
     # ---- planning -------------------------------------------------------------------
@@ -386,7 +412,8 @@ class Planner:
                 if j == i + 1:
                     break
                 query.checked += 1
-                if query.segment_certified(path[i], path[j], first=i == 0) and \
+                if query.segment_certified(path[i], path[j], first=i == 0,
+                                           last=j == len(path) - 1) and \
                         self.robot.segment_self_collision_free(path[i], path[j]):
                     break
             keep.append(j)
@@ -406,7 +433,8 @@ class Planner:
                     continue
                 query.checked += 2
                 if (query.segment_certified(path[i - 1], candidate, first=i == 1)
-                        and query.segment_certified(candidate, path[i + 1], first=False)
+                        and query.segment_certified(candidate, path[i + 1], first=False,
+                                                    last=i + 1 == len(path) - 1)
                         and self.robot.segment_self_collision_free(path[i - 1], candidate)
                         and self.robot.segment_self_collision_free(candidate, path[i + 1])):
                     path[i] = candidate
@@ -470,7 +498,7 @@ class Planner:
         points = np.vstack([q_now[None], np.asarray(remaining, float).reshape(-1, 7)])
         query = _Query(self, q_now, q_now, scene)
         for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
-            if not query.segment_certified(a, b, first=i == 0):
+            if not query.segment_certified(a, b, first=i == 0, last=i == len(points) - 2):
                 return True, "an obstacle blocks the remaining path"
         if self.risk is not None:
             p = float(self.risk(q_now, scene.now))
