@@ -14,7 +14,7 @@ Choices (where the paper says only "random arm motion, with enough collision sam
   about the shoulder (0.855 m arm reach + 0.1 m of hand, default 0.955 m) and with the
   nodes the robot itself always occupies removed (the base column and the shoulder
   housing: a node colliding in every one of 32 random configurations). With 0.15 m this
-  gives 813 nodes. The point obstacle is a sphere of radius ``radius`` (default 3 cm)
+  gives 814 nodes. The point obstacle is a sphere of radius ``radius`` (default 3 cm)
   centred on its node; the obstacle point stored is the node itself, so that a sample's
   distance is the distance the graph assigns to that node.
 - **Configurations** are valid states of a table-mounted arm: uniform within the joint
@@ -22,8 +22,11 @@ Choices (where the paper says only "random arm motion, with enough collision sam
   the table plane. A share ``near_contact_share`` (default ½) is *contact-seeking*: joints
   2–7 uniform, then joint 1 — a pure rotation of the whole arm about the base z axis — is
   solved in closed form so that a chosen point of the arm's skeleton lies a chosen distance
-  from the node. Uniform sampling alone labels only ~2 % of samples colliding; this puts
-  about half of the contact-seeking ones in contact and most of the rest within the margin.
+  from the node. Measured on 200,000 samples (seed 0, defaults): uniform samples collide
+  1.0 % of the time (median clearance 0.47 m), contact-seeking ones 29.6 % with 67 % within
+  the 5 cm margin (median 0.027 m); overall 15.3 % colliding (colliding : free = 0.18) and
+  every node gets 190–290 samples. Of uniform draws 7 % reach below the table plane and
+  5.6 % of the rest self-collide; both are drawn again.
 - **Labels** come only from :meth:`Robot.clearance` on the exact meshes; the skeleton is
   only an aim.
 - **Determinism**: chunk ``k`` draws from ``SeedSequence(seed, spawn_key=(k,))``, so the
@@ -45,6 +48,7 @@ import os
 import platform
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
@@ -72,7 +76,8 @@ SKELETON_STEP = 0.03  # m between aim points along the link-frame polyline
 AIM_MAX = 0.18
 """Contact-seeking aims a skeleton point at a distance uniform in [0, AIM_MAX] from the node:
 the Panda's links are ~6 cm about that axis, so with a 3 cm obstacle touching is ~0.09 m, and
-the aims are symmetric about contact (measured: about half of these samples collide)."""
+the aims are symmetric about contact. Other links and the links' real shape spread the exact
+distances: about 30 % of these samples collide and 67 % lie within 5 cm."""
 BATCH = 16  # candidate postures per contact-seeking sample (batched kinematics)
 AIM_PATIENCE = 2  # contact-seeking batches before a node gets the best closest approach
 MAX_BATCHES = 50  # candidate batches for one sample before giving up (never reached)
@@ -468,6 +473,8 @@ def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int
     pinocchio/coal is used across processes. Where fork is missing, spawn is used."""
     from tqdm import tqdm
 
+    if not jobs:
+        return []
     done = n_samples - sum(size for _, _, size in jobs)
     bar = tqdm(total=n_samples, initial=done, unit="sample", disable=not progress,
                desc="collect", smoothing=0.1)
@@ -476,17 +483,18 @@ def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int
     try:
         if workers == 1:
             _init_worker(*init_args)
-            results = map(_run_chunk, jobs)
-            for report in results:
-                reports.append(report)
-                bar.update(report["size"])
+            for job in jobs:
+                reports.append(_run_chunk(job))
+                bar.update(job[2])
         else:
             methods = multiprocessing.get_all_start_methods()
             ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-            with ctx.Pool(workers, initializer=_init_worker, initargs=init_args) as pool:
-                for report in pool.imap_unordered(_run_chunk, jobs):
-                    reports.append(report)
-                    bar.update(report["size"])
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                     initargs=init_args) as pool:
+                # a worker that dies raises BrokenProcessPool here instead of hanging
+                for future in as_completed([pool.submit(_run_chunk, job) for job in jobs]):
+                    reports.append(future.result())
+                    bar.update(reports[-1]["size"])
     finally:
         bar.close()
     return reports
@@ -569,19 +577,19 @@ def read_sidecar(out_dir: str | Path) -> dict:
         raise CollectError(f"{path}: data set version {meta.get('version')!r}, this package "
                            f"reads {DATASET_VERSION}")
     for key in ("n_samples", "fingerprint", "nodes", "chunks", "columns"):
-        if key not in meta:
+        if not meta.get(key):
             raise CollectError(f"{path}: no '{key}' entry")
     return meta
 
 
 def load_dataset(out_dir: str | Path,
                  verify_hashes: bool = True) -> tuple[dict[str, np.ndarray], dict]:
-    """(data, sidecar) of a collected data set. ``data`` holds every column as one array —
-    ``q`` (N,7), ``point`` (N,3), ``collision``, ``near``, ``distance``, ``node``, ``source``
-    (N,) — plus ``nodes`` (M,3) and ``self_collision`` (N,), all False: self-colliding
-    configurations are rejected at collection, the key is there for callers that mask them.
-    Checked against the sidecar: every chunk present, unmodified (SHA-256), of the right
-    size and dtype, node indices in range."""
+    """(data, sidecar) of a collected data set. ``data`` holds one array per column, all
+    with N rows — ``q`` (N,7), ``point`` (N,3), ``collision``, ``near``, ``distance``,
+    ``node``, ``source`` and ``self_collision`` (all False: self-colliding configurations are
+    rejected at collection; the key is there for callers that mask them). The obstacle nodes
+    are ``np.asarray(sidecar["nodes"])`` (M,3). Checked against the sidecar: every chunk
+    present, unmodified (SHA-256), of the right size and dtype, node indices in range."""
     out_dir = Path(out_dir)
     meta = read_sidecar(out_dir)
     parts: dict[str, list[np.ndarray]] = {name: [] for name, *_ in COLUMNS}
@@ -604,10 +612,9 @@ def load_dataset(out_dir: str | Path,
     if len(data["q"]) != meta["n_samples"]:
         raise CollectError(f"{out_dir}: {len(data['q'])} rows, {SIDECAR} says "
                            f"{meta['n_samples']}")
-    data["nodes"] = np.asarray(meta["nodes"], float).reshape(-1, 3)
-    if len(data["node"]) and (data["node"].min() < 0 or data["node"].max() >= len(
-            data["nodes"])):
-        raise CollectError(f"{out_dir}: node indices outside the {len(data['nodes'])} nodes")
+    n_nodes = len(meta["nodes"])
+    if data["node"].min() < 0 or data["node"].max() >= n_nodes:
+        raise CollectError(f"{out_dir}: node indices outside the {n_nodes} nodes")
     data["self_collision"] = np.zeros(len(data["q"]), bool)
     return data, meta
 
@@ -632,13 +639,13 @@ def collect_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reach", type=float, default=ARM_REACH + HAND_LENGTH,
                         help="node ball radius about the shoulder (m)")
     parser.add_argument("--floor", type=float, default=0.0, help="table plane height (m)")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
         meta = collect(args.n, args.seed, args.out, workers=args.workers,
                        chunk_size=args.chunk_size, spacing=args.spacing, radius=args.radius,
                        margin=args.margin, near_contact_share=args.near_contact_share,
-                       reach=args.reach, floor=args.floor, progress=not args.no_progress)
+                       reach=args.reach, floor=args.floor, progress=not args.quiet)
     except ValueError as exc:
         print(f"damon-ros collect: {exc}", file=sys.stderr)
         return 2

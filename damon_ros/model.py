@@ -17,7 +17,7 @@ import numpy as np
 
 MODEL_FORMAT = "damon_ros-model"
 MODEL_VERSION = 1
-FILES = ("vae.safetensors", "graph.npz", "gmr.npz")
+FILES = ("vae.safetensors", "graph.npz", "gmr.npz", "vae.json")
 
 
 class ModelError(ValueError):

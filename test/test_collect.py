@@ -79,7 +79,8 @@ def test_columns_and_both_labels(two_workers, robot):
     data, sidecar = load_dataset(out)
     assert data["q"].shape == (N, 7) and data["point"].shape == (N, 3)
     assert data["collision"].dtype == bool and data["node"].dtype == np.int32
-    assert np.array_equal(data["point"], data["nodes"][data["node"]])
+    assert np.array_equal(data["point"], np.asarray(sidecar["nodes"])[data["node"]])
+    assert all(len(column) == N for column in data.values())
     assert np.all((data["q"] >= robot.limits.lower) & (data["q"] <= robot.limits.upper))
     assert np.array_equal(data["collision"], data["distance"] <= 0.0)
     assert np.array_equal(data["near"], data["distance"] <= sidecar["margin"])
@@ -190,8 +191,8 @@ def test_sampler_chunk_is_a_pure_function_of_seed_and_index(nodes):
 
 def test_command_line(tmp_path, capsys):
     assert collect_main(["--n", "300", "--out", str(tmp_path), "--workers", "1",
-                         "--chunk-size", "300", "--no-progress"]) == 0
+                         "--chunk-size", "300", "--quiet"]) == 0
     assert "300 samples" in capsys.readouterr().out
     assert collect_main(["--n", "300", "--out", str(tmp_path / "x"), "--radius", "0",
-                         "--no-progress"]) == 2
+                         "--quiet"]) == 2
     assert "radius" in capsys.readouterr().err

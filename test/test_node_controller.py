@@ -32,6 +32,7 @@ CONFIG = rosutil.ROOT / "config"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 LIMITS = joint_limits("panda")
+CLIENT_PRIORITY = 0  # below the nodes' realtime_priority (20): see rosutil.RosClient
 JS_TIMEOUT_S = 0.05  # joint_state_timeout_s of config/controller.yaml
 HEARTBEAT_S = 0.5  # planner_heartbeat_timeout_s given to the controller
 TOLERANCE = 2e-3  # rad, goal tolerance of the closed loop
@@ -113,7 +114,7 @@ def arm(tmp_path_factory):
     env = rosutil.node_env(domain, tmp)
     procs = []
     try:
-        with rosutil.RosClient(domain) as ros:
+        with rosutil.RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
             arm = _start_arm(ros, env, tmp)
             procs = [arm.controller, arm.mock]
             assert ros.spin_until(lambda: len(arm.commands) > 10 and len(arm.states) > 10,

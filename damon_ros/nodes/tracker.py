@@ -11,8 +11,15 @@ stamp of every marker is the stamp of the image it was seen in.
 Intrinsics come from camera_info (frames are dropped, with one log line, until it arrives);
 the extrinsic is the hand-eye calibration ``base_T_camera`` of the camera file, which also
 names the base frame. A bad image (unsupported encoding, size unlike camera_info, short
-data, all-zero depth, a stamp going backwards) is dropped with one log line per kind of
-problem, repeated at most every ``warn_every_s`` with a count; the node keeps running.
+data, all-zero depth, a stamp not newer than the last frame's) is dropped with one log line
+per kind of problem, repeated at most every ``warn_every_s`` with a count; the node keeps
+running. Stamps that jump back by more than the tracker's ``time_jump_s`` (a simulator
+reset, a bag loop) restart pairing and tracking instead.
+
+Scheduling: ``realtime_priority`` (default 10) runs the node SCHED_FIFO, above the mock
+camera (5) and below the 1 kHz control nodes (20). Measured on the loaded 2-core machine
+(load ~5), it takes the stamp -> publication latency from p50 11 / p95 20 ms to p50 7 / p95
+8 ms; the tracking itself takes ~2.5 ms of it, the rest is moving two images through DDS.
 
 The work per frame is serial (pair, track, publish), so one executor thread serves every
 callback: no locks, and no second Python thread competing for the GIL with the tracking.
@@ -22,6 +29,7 @@ every ``stats_period_s`` and at shutdown.
 
 from __future__ import annotations
 
+import math
 import re
 import sys
 import time
@@ -69,6 +77,7 @@ PARAMETERS = (
     ("publish_partial", "also publish obstacles seen only in part (image border, occluder)"),
     ("stats_period_s", "log frame rate and latency every this many seconds; 0: at shutdown"),
     ("warn_every_s", "a repeated problem (bad image, ...) is logged at most this often"),
+    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
 )
 
 
@@ -203,6 +212,7 @@ class TrackerNode(Node):
         self.tracker: Tracker | None = None  # built from the first usable camera_info
         self._info_key: tuple | None = None
         self._waiting_logged = False
+        self._newest_stamp = -math.inf
         self._shown: set[tuple[str, int]] = set()
         self._pub = self.create_publisher(MarkerArray, OBSTACLES_TOPIC, 10)
         qos = qos_profile_sensor_data
@@ -213,6 +223,9 @@ class TrackerNode(Node):
             self._stats_started = time.monotonic()
             self._stats_frames = 0
             self.create_timer(p["stats_period_s"], self._log_stats)
+        refused = common.set_realtime_priority(p["realtime_priority"])
+        if refused:
+            self.get_logger().warning(refused)
         self.get_logger().info(
             f"tracking {sorted(self.config.colors)} as {self.config.shape}s in "
             f"{self.base_frame} on {OBSTACLES_TOPIC}, marker lifetime {self.lifetime_s:g} s")
@@ -233,6 +246,8 @@ class TrackerNode(Node):
                                 low=0.0, high=3600.0),
             "warn_every_s": d(self, "warn_every_s", 10.0, doc["warn_every_s"],
                               low=0.0, high=3600.0),
+            "realtime_priority": d(self, "realtime_priority", 10, doc["realtime_priority"],
+                                   low=0, high=99),
         }
 
     # -- callbacks
@@ -276,6 +291,7 @@ class TrackerNode(Node):
                                           "frames until it arrives")
             return
         stamp = stamp_seconds(msg.header.stamp)
+        self._check_clock(stamp)
         try:
             image = decode_image(msg, self.tracker.camera, depth)
             add = self.sync.add_depth if depth else self.sync.add_color
@@ -285,6 +301,19 @@ class TrackerNode(Node):
             return
         for pair in pairs:
             self._track(pair.color, pair.depth)
+
+    def _check_clock(self, stamp: float) -> None:
+        """Restart pairing when stamps jump back (simulation reset, bag loop).
+
+        `FrameSynchronizer` drops every frame older than its last pair, which after such a
+        jump would be every frame from then on; `Tracker` resets itself on the same test.
+        """
+        if stamp < self._newest_stamp - self.config.time_jump_s:
+            self.get_logger().info(f"image stamps jumped back by {self._newest_stamp - stamp:.3f}"
+                                   " s: restarting colour/depth pairing")
+            self.sync = FrameSynchronizer(self.sync.tolerance_s, self.sync.queue_size)
+            self._newest_stamp = stamp
+        self._newest_stamp = max(self._newest_stamp, stamp)
 
     def _track(self, color: tuple[np.ndarray, Time], depth: tuple[np.ndarray, Time]) -> None:
         started = time.perf_counter()

@@ -1,0 +1,61 @@
+"""collect → train → build-graph → analyze end to end at a small size, through the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from damon_ros.cli import main as cli
+from damon_ros.model import DamonModel, ModelError
+from damon_ros.scenario import public_scenarios_dir
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pipeline")
+    data, model = root / "data", root / "model"
+    assert cli(["collect", "--n", "3000", "--seed", "3", "--out", str(data), "--workers", "1",
+                "--chunk-size", "1500", "--spacing", "0.3", "--quiet"]) == 0
+    assert cli(["train", "--data", str(data), "--out", str(model), "--epochs", "3",
+                "--threads", "1", "--quiet"]) == 0
+    assert cli(["build-graph", "--data", str(data), "--model", str(model), "--n-vertices",
+                "1500", "--grid", "12", "--workers", "1", "--quiet"]) == 0
+    return root, data, model
+
+
+def test_the_small_model_loads_and_describes_itself(small_model):
+    _, _, model_dir = small_model
+    model = DamonModel.load(model_dir)
+    meta = json.loads((model_dir / "meta.json").read_text())
+    assert set(meta["files"]) >= {"vae.safetensors", "vae.json", "graph.npz", "gmr.npz"}
+    assert model.graph.n_vertices > 1000 and model.graph.n_edges > 0
+    assert 0.0 < meta["graph"]["largest_component_share"] <= 1.0
+    assert meta["graph"]["grid_vertices"] > 0
+
+
+def test_a_tampered_model_file_is_refused(small_model, tmp_path):
+    _, _, model_dir = small_model
+    copy = tmp_path / "model"
+    copy.mkdir()
+    for f in model_dir.iterdir():
+        copy.joinpath(f.name).write_bytes(f.read_bytes())
+    graph = copy / "graph.npz"
+    graph.write_bytes(graph.read_bytes()[:-100])
+    with pytest.raises(ModelError, match="graph.npz"):
+        DamonModel.load(copy)
+
+
+def test_analyze_prints_the_sweep_and_writes_the_plots(small_model, capsys):
+    root, data, model_dir = small_model
+    scenario = str(public_scenarios_dir() / "B-001.yaml")
+    out = root / "analysis"
+    assert cli(["analyze", "--data", str(data), "--model", str(model_dir), "--sizes", "800",
+                "--grid", "8", "--scenarios", scenario, "--out", str(out), "--workers", "1",
+                "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "N*" in printed and "T meas." in printed
+    for name in ("latent_manifold.png", "graph_route.png", "sweep.png", "reliability.png"):
+        assert (out / name).stat().st_size > 1000
+    results = json.loads((out / "results.json").read_text())
+    assert results["sweep"][0]["N"] == 800
