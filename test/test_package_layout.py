@@ -19,7 +19,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "damon_ros", "config", "models"]
-EXPECTED_EXECUTABLES = {"damon-ros", "planner", "controller", "mock_panda", "mock_camera", "tracker"}
+EXPECTED_EXECUTABLES = {"damon-ros", "planner", "controller", "mock_panda", "mock_camera",
+                        "tracker"}
 
 
 def _declared_executables(install: Path) -> set[str]:
