@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                 "GMR runtime model, graph-size sweep (N*) and the paper's plots"),
     "bench": ("damon_ros.bench", "main",
               "closed-loop benchmark vs OMPL on scenarios and MotionBenchMaker problems"),
+    "report": ("damon_ros.report", "main", "write docs/BENCHMARKS.md from bench result files"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",

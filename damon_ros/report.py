@@ -1,0 +1,164 @@
+"""``damon-ros report``: docs/BENCHMARKS.md from benchmark result files.
+
+Every number in the page is computed here from the JSON lines that ``damon-ros bench``
+wrote, and the page names the command that produced each file, so anyone can regenerate
+it. Plots (T and re-plan latency distributions per planner) are written beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+# ../shared/DAMON.md, Table 2 of the paper: (T s, smoothness) per family, and success.
+PAPER = {"A": (3.2, 0.31), "B": (4.7, 0.35), "C": (5.1, 0.41), "D": (6.5, 0.57),
+         "E": (7.3, 0.51)}
+PAPER_SUCCESS = {"static": 98.6, "dynamic": 97.8}
+PUBLISHED_MBM = ("VAMP RRT-Connect (one CPU core): median 35 µs planning, 95th pct 343 µs, "
+                 "100 % solved; cuRobo (RTX 6000 Ada GPU): median 31 ms, 100 % solved — as "
+                 "published (shared/benchmarks/motionbenchmaker/README.md), not measured here.")
+
+
+def load(path: str | Path) -> list[dict]:
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
+def _median(values) -> float:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.median(values)) if values else float("nan")
+
+
+def _p(values, q) -> float:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def _fmt(x: float, digits: int = 2) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def paper_table(records: list[dict]) -> list[str]:
+    """Our DAMON beside the paper's, families A–E, laid out like Table 2."""
+    runs = [r for r in records if r.get("planner") == "damon" and r.get("family") in PAPER]
+    lines = ["| setting | ours T (s) | paper T (s) | ours smooth. Σ‖ΔΘ‖ (rad) | paper smooth. | "
+             "ours success | runs |", "|---|---|---|---|---|---|---|"]
+    for family, (t_paper, s_paper) in PAPER.items():
+        rs = [r for r in runs if r["family"] == family]
+        if not rs:
+            continue
+        ok = [r for r in rs if r.get("success")]
+        lines.append(f"| {family} | {_fmt(_median([r['total_time_s'] for r in ok]))} | {t_paper} "
+                     f"| {_fmt(_median([r['path_length_rad'] for r in ok]))} | {s_paper} | "
+                     f"{100 * len(ok) / len(rs):.0f} % | {len(rs)} |")
+    for kind, dynamic in (("static", False), ("dynamic", True)):
+        rs = [r for r in records if r.get("planner") == "damon" and "dynamic" in r
+              and r["dynamic"] == dynamic]
+        if rs:
+            rate = 100 * np.mean([bool(r.get("success")) for r in rs])
+            lines.append(f"\nSuccess, {kind} scenarios (all families): ours {rate:.1f} % of "
+                         f"{len(rs)} runs; paper {PAPER_SUCCESS[kind]} %.")
+    return lines
+
+
+def planner_table(records: list[dict]) -> list[str]:
+    by: dict[str, list[dict]] = defaultdict(list)
+    for r in records:
+        if r.get("planner") and r.get("family"):
+            by[r["planner"]].append(r)
+    lines = ["| planner | runs | success | contacts | median T (s) | median path (rad) | "
+             "plan p50 (ms) | re-plan p50 (ms) | re-plan p99 (ms) | re-plans |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, rs in sorted(by.items()):
+        ok = [r for r in rs if r.get("success")]
+        replans = [x for r in rs for x in (r.get("replan_latency_ms") or [])]
+        lines.append(
+            f"| {name} | {len(rs)} | {100 * len(ok) / len(rs):.1f} % | "
+            f"{sum(bool(r.get('collided')) for r in rs)} | "
+            f"{_fmt(_median([r.get('total_time_s') for r in ok]))} | "
+            f"{_fmt(_median([r.get('path_length_rad') for r in ok]))} | "
+            f"{_fmt(_median([1e3 * r['planning_time_s'] for r in rs if r.get('planning_time_s')]), 1)} | "  # noqa: E501
+            f"{_fmt(_median(replans), 1)} | {_fmt(_p(replans, 99), 1)} | {len(replans)} |")
+    settings = {r["planner"]: r.get("planner_settings") for r in records if r.get("planner")}
+    lines.append("\nPlanner settings: " + "; ".join(
+        f"`{k}` {json.dumps(v)}" for k, v in sorted(settings.items())))
+    return lines
+
+
+def mbm_table(records: list[dict]) -> list[str]:
+    by: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for r in records:
+        if r.get("set") and r.get("planner"):
+            by[(r["set"], r["planner"])].append(r)
+    lines = ["| set | planner | problems | solved | median plan (ms) | p95 plan (ms) |",
+             "|---|---|---|---|---|---|"]
+    for (name, planner), rs in sorted(by.items()):
+        times = [1e3 * r["planning_time_s"] for r in rs]
+        solved = [1e3 * r["planning_time_s"] for r in rs if r.get("success")]
+        lines.append(f"| {name} | {planner} | {len(rs)} | "
+                     f"{100 * np.mean([bool(r.get('success')) for r in rs]):.0f} % | "
+                     f"{_fmt(_median(solved or times), 1)} | {_fmt(_p(times, 95), 1)} |")
+    return lines
+
+
+def plots(records: list[dict], out_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by: dict[str, list[dict]] = defaultdict(list)
+    for r in records:
+        if r.get("planner") and r.get("family"):
+            by[r["planner"]].append(r)
+    names = sorted(by)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    axes[0].boxplot([[r["total_time_s"] for r in by[n] if r.get("success")] or [np.nan]
+                     for n in names], tick_labels=names)
+    axes[0].set(ylabel="T (s)", title="Task time T per planner (successful runs)")
+    axes[1].boxplot([[x for r in by[n] for x in (r.get("replan_latency_ms") or [])] or [np.nan]
+                     for n in names], tick_labels=names)
+    axes[1].set(ylabel="ms", yscale="log", title="Re-plan latency per planner")
+    for a in axes:
+        a.tick_params(axis="x", rotation=30)
+    fig.tight_layout()
+    path = out_dir / "benchmarks_distributions.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return [path]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="damon-ros report",
+                                     description="Write docs/BENCHMARKS.md from bench results.")
+    parser.add_argument("--results", required=True, help="public-scenario results (JSON lines)")
+    parser.add_argument("--results-command", required=True,
+                        help="the command that produced --results (quoted in the page)")
+    parser.add_argument("--mbm", default=None, help="MotionBenchMaker results (JSON lines)")
+    parser.add_argument("--mbm-command", default="", help="the command that produced --mbm")
+    parser.add_argument("--out", default="docs/BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    records = load(args.results)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figures = plots(records, out.parent)
+    lines = ["# Benchmarks", "",
+             "Generated by `damon-ros report` from result files; every number below comes from "
+             "the command quoted above its table, run on the project's 2-core machine "
+             "(no GPU).", "",
+             "## DAMON against the paper's Table 2 (public scenarios, families A–E)", "",
+             f"`{args.results_command}`", "", *paper_table(records), "",
+             "## DAMON against OMPL on the same runs (all public scenarios)", "",
+             f"`{args.results_command}`", "", *planner_table(records), "",
+             *[f"![distributions]({f.name})" for f in figures], ""]
+    if args.mbm:
+        lines += ["## MotionBenchMaker (static, many obstacles, joint goals; plan once)", "",
+                  f"`{args.mbm_command}`", "", *mbm_table(load(args.mbm)), "",
+                  f"Published reference: {PUBLISHED_MBM}", ""]
+    out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {out}")
+    return 0
