@@ -14,10 +14,10 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from rosutil import next_domain_id
 
 from damon_ros.robot import Robot
 from damon_ros.scenario import public_scenarios_dir
-from rosutil import next_domain_id
 
 TIMEOUT_S = 150
 

@@ -32,7 +32,6 @@ CONFIG = rosutil.ROOT / "config"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 LIMITS = joint_limits("panda")
-CLIENT_PRIORITY = 0  # below the nodes' realtime_priority (20): see rosutil.RosClient
 JS_TIMEOUT_S = 0.05  # joint_state_timeout_s of config/controller.yaml
 HEARTBEAT_S = 0.5  # planner_heartbeat_timeout_s given to the controller
 TOLERANCE = 2e-3  # rad, goal tolerance of the closed loop
@@ -66,6 +65,7 @@ class Arm:
     controller_state: rosutil.Recorder
     trajectories: object
     heartbeat_on: bool = True  # the fake planner's /damon/planner_status at 20 Hz
+    last_heartbeat: float = 0.0  # system time of the last one sent
     commands_before_first_state: int = -1
 
     def q(self) -> np.ndarray:
@@ -76,10 +76,11 @@ class Arm:
             lambda: np.max(np.abs(self.states.last.velocity)) < 1e-4, timeout_s)
 
     def first_command_below(self, t: float, speed: float) -> float | None:
-        """Arrival (monotonic) of the first command after ``t`` with all |u| <= ``speed``."""
-        for msg, arrival in zip(self.commands.messages, self.commands.times, strict=True):
-            if arrival > t and np.max(np.abs(msg.data)) <= speed:
-                return arrival
+        """When the controller published its first command with all |u| <= ``speed`` after
+        system time ``t`` (publisher clock, so this process's own delays do not count)."""
+        for source, msg in self.commands.published_after(t):
+            if np.max(np.abs(msg.data)) <= speed:
+                return source
         return None
 
     def logs(self) -> str:
@@ -97,7 +98,13 @@ def _start_arm(ros: rosutil.RosClient, env: dict, tmp: Path) -> Arm:
               ros.publisher(JointTrajectory, "/damon/joint_trajectory"))
     beats = ros.publisher(DiagnosticArray, "/damon/planner_status")
     planner = DiagnosticArray(status=[DiagnosticStatus(name="fake planner")])
-    ros.node.create_timer(0.05, lambda: arm.heartbeat_on and beats.publish(planner))
+
+    def beat() -> None:
+        if arm.heartbeat_on:
+            beats.publish(planner)
+            arm.last_heartbeat = time.time()
+
+    ros.node.create_timer(0.05, beat)
     # The controller alone: its command publisher is up, yet it commands nothing.
     ros.wait_for_publishers("/damon/joint_commands", 1, 20.0)
     ros.spin_for(0.3)
@@ -114,7 +121,7 @@ def arm(tmp_path_factory):
     env = rosutil.node_env(domain, tmp)
     procs = []
     try:
-        with rosutil.RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
+        with rosutil.RosClient(domain) as ros:
             arm = _start_arm(ros, env, tmp)
             procs = [arm.controller, arm.mock]
             assert ros.spin_until(lambda: len(arm.commands) > 10 and len(arm.states) > 10,
@@ -218,13 +225,15 @@ def test_silent_planner_holds_the_arm(arm: Arm):
     arm.ros.spin_for(0.3)
     lines = len(rosutil.log_lines(arm.controller, "no /damon/planner_status"))
     arm.heartbeat_on = False
-    silent = time.monotonic()
+    silent = arm.last_heartbeat
     try:
         # Holding is position control: the command settles near zero, not exactly at it.
         assert arm.ros.spin_until(lambda: arm.first_command_below(silent, 0.01), 3.0), \
             arm.logs()
         stopped = arm.first_command_below(silent, 0.01) - silent
-        assert HEARTBEAT_S - 0.06 < stopped < HEARTBEAT_S + 0.3, stopped
+        print(f"\nsilent planner: holding {1e3 * stopped:.1f} ms after its last heartbeat "
+              f"(timeout {1e3 * HEARTBEAT_S:.0f} ms)")
+        assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 0.1, stopped
         assert arm.settle()
         arm.ros.spin_for(0.2)
         assert arm.q()[0] < goal[0] - 0.05  # it never got there
@@ -235,17 +244,17 @@ def test_silent_planner_holds_the_arm(arm: Arm):
 
 
 def _braking_start(commands: rosutil.Recorder, zero: float) -> float:
-    """Arrival of the first command of the monotone ramp that ends at ``zero``.
+    """Publication time of the first command of the monotone ramp that ends at ``zero``.
 
     With frozen joint states the tracking error only grows, so the command grows until the
     controller declares the states stale; from then on it falls monotonically to zero.
     """
-    times = np.array(commands.times)
+    sources = np.array(commands.sources)
     u = np.array([np.max(np.abs(m.data)) for m in commands.messages])
-    k = int(np.searchsorted(times, zero))
+    k = int(np.searchsorted(sources, zero))
     while k > 0 and u[k - 1] >= u[k]:
         k -= 1
-    return float(times[k])
+    return float(sources[k])
 
 
 def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
@@ -258,9 +267,7 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
     arm.mock.send_signal(signal.SIGSTOP)  # joint states stop, exactly
     try:
         arm.ros.spin_for(0.3)
-        # The last state the mock published, from its stamp, on this process's monotonic clock.
-        stamp = arm.states.last.header.stamp
-        last_state = stamp.sec + 1e-9 * stamp.nanosec - (time.time() - time.monotonic())
+        last_state = arm.states.sources[-1]  # when the mock published its last state
         assert arm.ros.spin_until(lambda: arm.first_command_below(last_state, 0.0), 2.0)
         zero = arm.first_command_below(last_state, 0.0)
         braking = _braking_start(arm.commands, zero) - last_state
@@ -269,10 +276,10 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
         arm.mock.send_signal(signal.SIGCONT)
     print(f"\nstale joint states: braking after {1e3 * braking:.1f} ms, zero command after "
           f"{1e3 * to_zero:.1f} ms (timeout {1e3 * JS_TIMEOUT_S:.0f} ms)")
-    # Braking starts once the states are JS_TIMEOUT_S old; the ramp to zero keeps to the
-    # acceleration and jerk limits (~20 ms from this speed). Margins absorb a loaded machine.
-    assert JS_TIMEOUT_S - 0.005 < braking < JS_TIMEOUT_S + 0.04, braking
-    assert to_zero < JS_TIMEOUT_S + 0.05 + 0.04, to_zero
+    # Braking starts once the states are JS_TIMEOUT_S old (+ one tick + DDS + wake-up); the
+    # ramp to zero keeps to the acceleration and jerk limits: ~25 ms from this speed.
+    assert JS_TIMEOUT_S < braking < JS_TIMEOUT_S + 0.015, braking
+    assert braking < to_zero < braking + 0.05, to_zero
     assert len(rosutil.log_lines(arm.controller, "joint states stale")) == lines + 1
     assert arm.ros.spin_until(
         lambda: "joint states are back" in rosutil.read_log(arm.controller), 3.0)

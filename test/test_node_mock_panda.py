@@ -34,7 +34,6 @@ if not SCENARIO.exists():
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 LIMITS = joint_limits("panda")
-CLIENT_PRIORITY = 10  # below the nodes' realtime_priority (20): see rosutil.RosClient
 TIMEOUT_S = 0.1  # command_timeout_s of config/mock_panda.yaml
 
 
@@ -81,7 +80,7 @@ def graph(tmp_path_factory):
     proc = rosutil.start_node("mock_panda", None, env, tmp / "mock_panda.log",
                               params_file=CONFIG)
     try:
-        with rosutil.RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
+        with rosutil.RosClient(domain) as ros:
             states = ros.record(JointState, "/joint_states")
             commands = ros.publisher(Float64MultiArray, "/damon/joint_commands")
             assert ros.spin_until(lambda: len(states) > 20, 20.0), _failure(proc)
@@ -213,7 +212,7 @@ def test_scenario_start_and_contact_report(tmp_path: Path):
                                              "contact_rate_hz": 20.0},
                               env, tmp_path / "mock_panda.log", params_file=CONFIG)
     try:
-        with rosutil.RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
+        with rosutil.RosClient(domain) as ros:
             states = ros.record(JointState, "/joint_states")
             contact = ros.record(DiagnosticArray, "/damon/sim/contact")
             assert ros.spin_until(lambda: len(contact) > 0, 20.0), _failure(proc)
