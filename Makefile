@@ -2,7 +2,7 @@
 PY := .venv/bin/python
 STAMP := .venv/.installed
 
-.PHONY: demo test venv lint
+.PHONY: demo test venv lint model
 
 demo: $(STAMP)
 	$(PY) -m damon_ros.cli demo
@@ -22,3 +22,11 @@ $(STAMP): requirements.txt setup.py
 	$(PY) -m pip install -q -r requirements.txt
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	touch $(STAMP)
+
+# The shipped model, from fixed seeds (see README "The shipped model"; ~25 min on 2 cores).
+DATA ?= data/d1m
+N ?= 20000
+model: $(STAMP)
+	$(PY) -m damon_ros.cli collect --n 1000000 --seed 0 --out $(DATA)
+	$(PY) -m damon_ros.cli train --data $(DATA) --out models/default --epochs 12 --seed 0 --threads 1
+	$(PY) -m damon_ros.cli build-graph --data $(DATA) --model models/default --n-vertices $(N) --seed 0
