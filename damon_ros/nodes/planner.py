@@ -58,7 +58,7 @@ class PlannerNode(Node):
         from damon_ros.robot import Robot
         from damon_ros.runtime import ReactivePlanner, RuntimeConfig
 
-        p = self._parameters()
+        p = self._read_parameters()
         self.limits = joint_limits(p["limit_profile"], p["joint_prefix"])
         self.model = DamonModel.load(p["model_dir"] or None)
         self.robot = Robot("fast", p["limit_profile"])
@@ -103,7 +103,7 @@ class PlannerNode(Node):
             f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
 
-    def _parameters(self) -> dict:
+    def _read_parameters(self) -> dict:
         d = {}
         for name, default, doc, lo, hi in [
             ("model_dir", "", "model directory ('' = shipped default)", None, None),
