@@ -85,12 +85,14 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     os.environ.update(ros_environment(domain))  # the demo's own rclpy joins the same graph
     start_time = time.time() + args.startup_s
     common = {"scenario": str(path.resolve()), "scenario_start_time_s": start_time}
+    truth = {"truth_lifetime_frames": 30.0}  # ground truth stays valid for 1 s between frames
     nodes = {
         "mock_panda": ("mock_panda", {**common, "contact_check": True}, None),
         "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0}, None),
         "planner": ("planner", {"model_dir": args.model or ""},
                     {"/damon/obstacles": "/damon/sim/obstacles"} if args.no_camera else None),
-        "mock_camera": ("mock_camera", common, None),
+        "mock_camera": ("mock_camera", {**common, **truth, "publish_images": not args.no_camera},
+                        None),
     }
     if not args.no_camera:
         nodes["tracker"] = ("tracker", {}, None)

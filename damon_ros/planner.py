@@ -350,8 +350,8 @@ class Planner:
         goal_links = dict(self._attach(query.q_goal, active))
         direct = float(np.linalg.norm(query.q_goal - query.q_start))
         heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
-        while query.iterations < self.config.max_lazy_iterations and \
-                time.perf_counter() < query.deadline:
+        while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
+                                        and time.perf_counter() < query.deadline):
             query.iterations += 1
             path = self._astar(query, active, start_links, goal_links, direct, heuristic)
             if path is None:

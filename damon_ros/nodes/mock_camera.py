@@ -76,6 +76,8 @@ PARAMETERS = (
     ("time_scale", "scenario seconds per ROS second"),
     ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
     ("publish_ground_truth", f"publish the scenario's obstacles on {TRUTH_TOPIC}"),
+    ("publish_images", "render and publish the camera images (false: ground truth only, "
+                       "for runs without perception)"),
     ("truth_lifetime_frames", "lifetime of a ground-truth marker, in frames"),
     ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
 )
@@ -138,6 +140,7 @@ class MockCamera(Node):
         # one-line error, instead of inside the timer.
         render(self.camera, scene_at(self.scenario, 0.0),
                **render_settings_kwargs(self.settings, np.random.default_rng(0)))
+        self.publish_images = p["publish_images"]
         self.period = 1.0 / p["fps"]
         self.time_scale = p["time_scale"]
         self.truth_lifetime_s = p["truth_lifetime_frames"] * self.period
@@ -178,6 +181,7 @@ class MockCamera(Node):
                                        doc["scenario_start_time_s"]),
             "publish_ground_truth": d(self, "publish_ground_truth", True,
                                       doc["publish_ground_truth"]),
+            "publish_images": d(self, "publish_images", True, doc["publish_images"]),
             "truth_lifetime_frames": d(self, "truth_lifetime_frames", 3.0,
                                        doc["truth_lifetime_frames"], low=0.0, high=1000.0),
             "realtime_priority": d(self, "realtime_priority", 5, doc["realtime_priority"],
@@ -195,9 +199,12 @@ class MockCamera(Node):
         predicted = float(np.percentile(self._render_s, 90)) + RENDER_MARGIN_S
         stamp_s = tick + min(predicted, self.period)
         scene = scene_at(self.scenario, self.scenario_time(stamp_s))
-        rgb, depth = render(self.camera, scene, **render_settings_kwargs(self.settings,
-                                                                          self._rng))
-        messages = self._messages(rgb, depth, scene)
+        if self.publish_images:
+            rgb, depth = render(self.camera, scene, **render_settings_kwargs(self.settings,
+                                                                              self._rng))
+            messages = self._messages(rgb, depth, scene)
+        else:
+            messages = self._messages(None, None, scene)
         ready = self._now()
         self._render_s.append(ready - tick)
         if ready < stamp_s:
@@ -218,9 +225,10 @@ class MockCamera(Node):
         """The frame's messages, stamped later: copying 1.5 MB of pixels is done before."""
         frame = self.camera.frame_id
         placeholder = Time()
-        messages = [(self._pub_color, image_message(rgb, "rgb8", placeholder, frame)),
-                    (self._pub_depth, image_message(depth, "16UC1", placeholder, frame)),
-                    (self._pub_info, camera_info_message(self.camera, placeholder))]
+        messages = [] if rgb is None else [
+            (self._pub_color, image_message(rgb, "rgb8", placeholder, frame)),
+            (self._pub_depth, image_message(depth, "16UC1", placeholder, frame)),
+            (self._pub_info, camera_info_message(self.camera, placeholder))]
         if self._pub_truth is not None:
             markers = MarkerArray()
             for i, (shape, color) in enumerate(scene):

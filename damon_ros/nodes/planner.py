@@ -22,13 +22,20 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.nodes.common import declare, print_help, run, sec_to_stamp
+from damon_ros.nodes.common import (
+    declare,
+    print_help,
+    run,
+    sec_to_stamp,
+    set_realtime_priority,
+)
 
 PARAMETERS = [
     ("model_dir", "model directory ('' = the shipped models/default)"),
@@ -43,6 +50,7 @@ PARAMETERS = [
     ("perception_timeout_s", "stop the arm when obstacle data is older (0 = off)"),
     ("joint_state_timeout_s", "refuse to plan from joint states older than this"),
     ("time_budget_s", "a route search gives up after this long"),
+    ("realtime_priority", "SCHED_FIFO priority of the node's threads (0 = normal scheduling)"),
     ("trajectory_topic", "where trajectories go (/fr3_arm_controller/joint_trajectory for "
                          "franka_ros2's JTC)"),
 ]
@@ -89,8 +97,12 @@ class PlannerNode(Node):
         self.pub_path = self.create_publisher(Path, "/damon/planned_path", 10)
         self.pub_graph = self.create_publisher(MarkerArray, "/damon/graph_markers", 1)
         self.pub_status = self.create_publisher(DiagnosticArray, "/damon/planner_status", 10)
-        self.create_subscription(JointState, "/joint_states", self._on_joint_state, 10,
-                                 callback_group=sensors)
+        # raw: at 1 kHz, deserialising every joint state would cost the planner a good part
+        # of a core; one state per `joint_state_period_s` is all it needs
+        self.create_subscription(JointState, "/joint_states", self._on_joint_state_raw, 10,
+                                 callback_group=sensors, raw=True)
+        self._joint_state_period = p["joint_state_period_s"]
+        self._joint_state_next = 0.0
         self.create_subscription(MarkerArray, "/damon/obstacles", self._on_obstacles,
                                  qos_profile_sensor_data, callback_group=planning)
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
@@ -99,6 +111,9 @@ class PlannerNode(Node):
         self.create_service(Trigger, "~/stop", self._on_stop_service, callback_group=planning)
         self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor, callback_group=planning)
         self.create_timer(0.1, self._publish_status, callback_group=sensors)
+        refused = set_realtime_priority(p["realtime_priority"])
+        if refused:
+            self.get_logger().warning(refused)
         self.get_logger().info(
             f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
@@ -118,10 +133,14 @@ class PlannerNode(Node):
             ("jerk_scale", 0.5, "fraction of the jerk limits", 0.01, 1.0),
             ("prediction_horizon_s", 0.3, "obstacle sweep horizon (s)", 0.0, 5.0),
             ("monitor_rate_hz", 20.0, "fixed-rate path re-check (Hz)", 0.5, 1000.0),
-            ("perception_timeout_s", 0.0, "stale obstacle data stops the arm (0 = off)", 0.0,
-             60.0),
+            ("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
+             "(0 = off, for a setup without perception)", 0.0, 60.0),
+            ("joint_state_period_s", 0.005, "joint states used at most this often (s)", 0.0,
+             1.0),
             ("joint_state_timeout_s", 0.5, "max joint-state age to plan from (s)", 0.001, 60.0),
-            ("time_budget_s", 0.25, "route search budget (s)", 0.001, 10.0),
+            ("time_budget_s", 0.5, "route search budget (s)", 0.001, 10.0),
+            ("realtime_priority", 15, "SCHED_FIFO priority (0 = normal): above the camera and "
+             "tracker, below the 1 kHz control loops", 0, 99),
         ]:
             kwargs = {} if lo is None else {"low": lo, "high": hi}
             d[name] = declare(self, name, default, doc, **kwargs)
@@ -130,6 +149,13 @@ class PlannerNode(Node):
     # ---- inputs -----------------------------------------------------------------------
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_joint_state_raw(self, data: bytes) -> None:
+        now = time.monotonic()
+        if now < self._joint_state_next:
+            return
+        self._joint_state_next = now + self._joint_state_period
+        self._on_joint_state(deserialize_message(data, JointState))
 
     def _on_joint_state(self, msg: JointState) -> None:
         try:
