@@ -327,27 +327,25 @@ class Planner:
         witness = self.robot.clearance(q, obstacles).obstacle_point
         return self.graph.nearest_nodes(witness, k=n)
 
-    def _attach(self, q: np.ndarray, active: np.ndarray) -> list[tuple[int, float]]:
-        """The k nearest active vertices to a configuration, with joint-space distances."""
+    def _attach(self, q: np.ndarray, active_ids: np.ndarray) -> list[tuple[int, float]]:
+        """The k nearest active vertices to a configuration, with joint-space distances: a
+        direct scan of a small active set, the KD-tree over all safe vertices otherwise."""
         k = self.config.k_attach
-        n = len(self._safe_ids)
-        want = min(n, max(4 * k, int(4 * k * n / max(1, active.sum()))))
-        dist, idx = self._tree.query(q, k=want)
-        out = []
-        for d, i in zip(np.atleast_1d(dist), np.atleast_1d(idx), strict=True):
-            v = int(self._safe_ids[i])
-            if active[v]:
-                out.append((v, float(d)))
-                if len(out) == k:
-                    break
-        return out
+        if len(active_ids) <= 4096:
+            d = np.linalg.norm(self.graph.q[active_ids] - q, axis=1)
+            nearest = np.argsort(d)[:k] if len(d) <= k else np.argpartition(d, k)[:k]
+            return [(int(active_ids[i]), float(d[i])) for i in nearest]
+        dist, idx = self._tree.query(q, k=min(4 * k, len(self._safe_ids)))
+        return [(int(self._safe_ids[i]), float(x)) for x, i in zip(
+            np.atleast_1d(dist), np.atleast_1d(idx), strict=True)][:k]
 
     def _lazy_astar(self, query: _Query, active: np.ndarray) -> list[int] | None:
         """A* over active safe vertices plus start and goal; edges on the found path are
         checked in order and a blocked one removed before searching again (lazy PRM)."""
         g = self.graph
-        start_links = self._attach(query.q_start, active)
-        goal_links = dict(self._attach(query.q_goal, active))
+        active_ids = np.flatnonzero(active)
+        start_links = self._attach(query.q_start, active_ids)
+        goal_links = dict(self._attach(query.q_goal, active_ids))
         direct = float(np.linalg.norm(query.q_goal - query.q_start))
         heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
         while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
