@@ -66,8 +66,8 @@ class PlannerConfig:
     max_lazy_iterations: int = 300
     shortcut: bool = True
     velocity_scale: float = 0.9
-    acceleration_scale: float = 0.5
-    jerk_scale: float = 0.5
+    acceleration_scale: float = 0.8  # leaves the PID room to correct (tracking < 0.02 rad)
+    jerk_scale: float = 0.8
     trajectory_dt: float = 0.01
     ik_seeds: int = 16
     time_budget_s: float = 0.25  # a route search gives up (and says so) after this long

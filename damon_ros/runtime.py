@@ -134,9 +134,11 @@ class ReactivePlanner:
                 return None
             self.state = "reached"
             return Event("reached", "goal reached")
-        self._advance(q_now)
-        threatened, why = self.planner.path_threatened(q_now, self.path[self.segment + 1:],
-                                                       shapes)
+        on_path = self._advance(q_now)
+        # re-check the certified path from where the arm is on it: a tracking error alone is
+        # no reason to re-route (the short step back onto the path is checked too)
+        threatened, why = self.planner.path_threatened(
+            q_now, np.vstack([on_path[None], self.path[self.segment + 1:]]), shapes)
         if not threatened:
             return None
         return self._reroute(q_now, shapes, why)
@@ -184,15 +186,18 @@ class ReactivePlanner:
         self.last_retry = -math.inf
         return Event("hold", reason, result, latency)
 
-    def _advance(self, q_now: np.ndarray) -> None:
-        """Index of the path segment the arm is on: the nearest segment at or after the
-        current one (the arm only moves forward along a trajectory)."""
-        best, best_d = self.segment, math.inf
+    def _advance(self, q_now: np.ndarray) -> np.ndarray:
+        """Move to the path segment the arm is on — the nearest at or after the current one
+        (the arm only moves forward along a trajectory) — and return the nearest point of
+        the path on it."""
+        best, best_d, best_p = self.segment, math.inf, self.path[self.segment]
         for i in range(self.segment, len(self.path) - 1):
             a, b = self.path[i], self.path[i + 1]
             ab = b - a
             s = float(np.clip((q_now - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0))
-            d = float(np.linalg.norm(a + s * ab - q_now))
+            p = a + s * ab
+            d = float(np.linalg.norm(p - q_now))
             if d < best_d - 1e-9:
-                best, best_d = i, d
+                best, best_d, best_p = i, d, p
         self.segment = best
+        return best_p
