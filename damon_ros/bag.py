@@ -13,6 +13,7 @@ import re
 import time
 from pathlib import Path
 
+from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 
 SEPARATOR = "=" * 80
@@ -107,7 +108,9 @@ class BagRecorder:
                                                   data=message_definition(cls).encode())
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=schema)
-            node.create_subscription(cls, topic, self._callback(topic), 50)
+            qos = qos_profile_sensor_data if topic.startswith("/camera") or topic in (
+                "/damon/obstacles",) else 50  # match the publishers' QoS
+            node.create_subscription(cls, topic, self._callback(topic), qos)
 
     def _callback(self, topic: str):
         channel = self._channels[topic]

@@ -77,6 +77,7 @@ class ReactivePlanner:
         self.segment = 0
         self.last_retry = -math.inf
         self.last_probability = 0.0
+        self.pending_goal = None  # a goal given before obstacle data arrived
         self.stats = RuntimeStats()
 
     def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> Scene:
@@ -84,9 +85,17 @@ class ReactivePlanner:
         h = self.config.prediction_horizon_s
         return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles))
 
-    def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]]
-                 ) -> Event:
-        """Plan to a new goal (replacing any current one)."""
+    def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
+                 perception_age_s: float = 0.0) -> Event:
+        """Plan to a new goal (replacing any current one). Without fresh obstacle data the
+        goal waits (the arm holds) and is planned as soon as data arrives: never blind."""
+        timeout = self.config.perception_timeout_s
+        if timeout > 0 and perception_age_s > timeout:
+            self.pending_goal = goal
+            self.planner.goal_q = None
+            return self._hold(f"goal waits for obstacle data (none for "
+                              f"{perception_age_s:.1f} s, limit {timeout:.2f} s)")
+        self.pending_goal = None
         t0 = time.perf_counter()
         result = self.planner.plan(q_now, goal, self.scene(obstacles))
         latency = 1e3 * (time.perf_counter() - t0)
@@ -101,6 +110,7 @@ class ReactivePlanner:
 
     def stop(self, reason: str) -> Event:
         self.planner.goal_q = None
+        self.pending_goal = None
         self.state = "idle"
         self.path = np.zeros((0, 7))
         return Event("hold", reason)
@@ -122,6 +132,8 @@ class ReactivePlanner:
         if self.state == "holding":
             if timeout > 0 and perception_age_s > timeout:
                 return None
+            if self.pending_goal is not None:
+                return self.set_goal(q_now, self.pending_goal, obstacles, perception_age_s)
             if t - self.last_retry >= self.config.retry_period_s:
                 self.last_retry = t
                 event = self._reroute(q_now, shapes, "route found again; resuming")

@@ -209,7 +209,9 @@ class PlannerNode(Node):
         o = msg.pose.orientation
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
                                   msg.pose.position.z]), np.array([o.x, o.y, o.z, o.w]))
-        event = self.runtime.set_goal(q, goal, self._obstacles(self._now()))
+        now = self._now()
+        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else math.inf
+        event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age)
         self._act(event, received, "goal")
         return event
 
@@ -235,7 +237,7 @@ class PlannerNode(Node):
         if q is None or self.runtime.state in ("idle", "reached"):
             return
         now = self._now()
-        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else 0.0
+        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else math.inf
         event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age)
         self._act(event, received, "update")
 
