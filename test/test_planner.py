@@ -105,21 +105,24 @@ def test_a_goal_out_of_reach_is_refused_with_a_reason(planner):
     assert not result.success and "reach" in result.reason
 
 
-def test_no_route_means_no_path_and_a_reason(planner, robots):
-    fast, _ = robots
+def test_no_route_means_no_path_and_a_reason(planner, monkeypatch):
+    """When no edge can be certified nothing is returned: the planner never falls back on an
+    unchecked path (here every segment that comes near the goal is refused)."""
     scenario = SCENARIOS[0]
-    # a wall of boxes around the arm that leaves the start free but no way out
-    start_tcp = fast.fk(scenario.start)[:3, 3]
-    cage = [Shape("box", (0.05, 1.6, 1.6), [start_tcp[0] + 0.12, 0.0, 0.5]),
-            Shape("box", (1.6, 0.05, 1.6), [0.3, start_tcp[1] + 0.15, 0.5]),
-            Shape("box", (1.6, 0.05, 1.6), [0.3, start_tcp[1] - 0.15, 0.5])]
-    if fast.clearance(scenario.start, cage).distance <= 0:
-        pytest.skip("the cage touches this start state")
-    goal = PoseGoal(np.array([0.3, -0.6, 0.3]), np.array([1.0, 0.0, 0.0, 0.0]))
-    result = planner.plan(scenario.start, goal, cage)
+    goal = _goal(scenario)
+    q_goal, _ = planner.resolve_goal(goal, scenario.start, scenario.obstacles_at(0.0))
+    original = planner.segment_free
+
+    def refuse_near_goal(q0, q1, obstacles, margin):
+        if min(np.linalg.norm(q0 - q_goal), np.linalg.norm(q1 - q_goal)) < 1e-9:
+            return False
+        return original(q0, q1, obstacles, margin)
+
+    monkeypatch.setattr(planner, "segment_free", refuse_near_goal)
+    result = planner.plan(scenario.start, goal, scenario.obstacles_at(0.0))
     assert not result.success
     assert len(result.path) == 0 and result.trajectory is None
-    assert result.reason
+    assert "no certified route" in result.reason and "holding" in result.reason
 
 
 def test_swept_sphere_contains_its_motion():
