@@ -31,6 +31,10 @@ class OmplPlanner(Planner):
         if algorithm not in ALGORITHMS:
             raise ValueError(f"unknown OMPL planner {algorithm!r}; expected one of "
                              f"{sorted(ALGORITHMS)}")
+        from dataclasses import replace
+
+        # the search budget is the OMPL solve time (RRT* spends all of it improving its path)
+        config = replace(config or PlannerConfig(), time_budget_s=solve_time)
         super().__init__(None, robot, limits, config)
         self.algorithm = algorithm
         self.solve_time = solve_time
@@ -80,7 +84,7 @@ class OmplPlanner(Planner):
             planner.setRange(self.range_rad)
         planner.setProblemDefinition(pdef)
         planner.setup()
-        budget = min(self.solve_time, self.config.time_budget_s)
+        budget = self.solve_time
         planner.solve(budget)
         result = PlanResult(False, "", goal_q=q_goal)
         if pdef.hasExactSolution():
