@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from damon_ros.limits import JointLimits
-from damon_ros.planner import Planner, PlannerConfig, PlanResult, Scene
+from damon_ros.planner import Planner, PlannerConfig, PlanResult, Scene, _Query
 
 ALGORITHMS = {"rrt": "RRT", "rrtstar": "RRTstar", "rrtconnect": "RRTConnect"}
 
@@ -62,7 +62,9 @@ class OmplPlanner(Planner):
             bounds.setHigh(i, float(self.limits.upper[i]))
         space.setBounds(bounds)
         si = ob.SpaceInformation(space)
-        margin = min(self.config.margin, self._start_margin(q_start, scene.now))
+        # one margin for every state OMPL checks; never below zero (the planner's "may only
+        # move away" rule for a start inside the conservative envelope needs segment order)
+        margin = max(0.0, min(self.config.margin, self._start_margin(q_start, scene.now)))
         obstacles = scene.ahead
         robot = self.robot
 
@@ -93,12 +95,16 @@ class OmplPlanner(Planner):
             waypoints = np.array([[path.getState(k)[i] for i in range(7)]
                                   for k in range(path.getStateCount())])
             waypoints[0], waypoints[-1] = q_start, q_goal
-            if all(self.robot.segment_self_collision_free(a, b)
-                   for a, b in zip(waypoints, waypoints[1:], strict=False)):
+            query = _Query(self, q_start, q_goal, scene)  # the planner's own certification
+            last = len(waypoints) - 2
+            if all(query.segment_certified(a, b, first=i == 0, last=i == last)
+                   and self.robot.segment_self_collision_free(a, b)
+                   for i, (a, b) in enumerate(zip(waypoints, waypoints[1:], strict=False))):
                 result.success, result.path = True, waypoints
                 result.trajectory = self._time_parameterize(waypoints)
             else:
-                result.reason = f"{ALGORITHMS[self.algorithm]} path self-collides; holding"
+                result.reason = (f"{ALGORITHMS[self.algorithm]} path fails certification "
+                                 "(self-collision or margin); holding")
         else:
             result.reason = (f"{ALGORITHMS[self.algorithm]} found no route in "
                              f"{budget:.2f} s; holding position")
