@@ -18,9 +18,13 @@ same way:
   `stop_node` sends SIGINT, then SIGTERM, then SIGKILL, each wait bounded.
 - **In-process client.** `RosClient` (a context manager) owns an ``rclpy.Context``, a node
   and a single-threaded executor; `RosClient.spin_until` always returns within its timeout.
+  It records topics with publisher timestamps and reaches the nodes over UDP only, so
+  that a slow test process can not stall them through shared memory (see `RosClient`).
 
-Run ``python test/rosutil.py image-latency`` to measure a 640x480 rgb8 image between two
-processes with and without the shared-memory profile.
+Measurements: ``python test/rosutil.py image-latency`` (a 640x480 rgb8 image between two
+processes, with and without the shared-memory profile) and ``python test/rosutil.py
+loop-timing --seconds 15 [--priority 0]`` (the 1 kHz loop periods of mock_panda and
+controller running closed loop).
 """
 
 from __future__ import annotations
@@ -187,6 +191,34 @@ class Recorder:
         return list(zip(self.sources[k:], self.messages[k:], strict=True))
 
 
+CLIENT_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>test_client_udpv4</transport_id>
+      <type>UDPv4</type>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="test_client_udp_only" is_default_profile="true">
+    <rtps>
+      <userTransports><transport_id>test_client_udpv4</transport_id></userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def client_profile() -> Path:
+    """The Fast DDS profile of the test process (UDP only, see `RosClient`), as a file."""
+    path = Path(tempfile.gettempdir()) / f"damon_test_client_{os.getuid()}.xml"
+    if not path.exists() or path.read_text() != CLIENT_PROFILE:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(CLIENT_PROFILE)
+        tmp.replace(path)  # atomic: concurrent test runs never read half a file
+    return path
+
+
 class RosClient:
     """An in-process ROS participant for a test: own context, node and executor.
 
@@ -197,9 +229,17 @@ class RosClient:
     (normal scheduling again after it; nothing happens where that is not permitted). Use it
     sparingly: beside the real-time 1 kHz nodes, a real-time test process taking their 2 kHz
     of messages pushed this 2-core machine into the kernel's RT throttling, which stopped
-    every RT thread, the nodes' included, for up to 300 ms. The mock_panda and controller
-    tests therefore keep normal scheduling: their client may take messages late, so timing
-    is judged on `Recorder.sources` (publisher clocks) and recorders keep a deep history.
+    every RT thread, the nodes' included, for up to 300 ms.
+
+    The client itself talks to the nodes over UDP only (`CLIENT_PROFILE`), while the nodes
+    use the shared-memory profile among themselves. Fast DDS guards its shared-memory ports
+    with mutexes shared between processes, so a CPU-starved normal-priority reader holding
+    one stalls a real-time writer: measured here, with a shared-memory client on a loaded
+    2-core machine, mock_panda and controller stalled ~50 ms about once a second (stale
+    joint states); with a UDP-only client, in the same conditions, they did not. An
+    observer must not disturb what it observes. Python may still take messages late, so
+    timing is judged on `Recorder.sources` (publisher clocks), and recorders keep a deep
+    history.
     """
 
     def __init__(self, domain_id: int, name: str = "test_client", realtime_priority: int = 0):
@@ -208,6 +248,8 @@ class RosClient:
         self.realtime_priority = realtime_priority
         self.context: Context | None = None
         self.node = None
+        self.recording_node = None
+        self._recorded: list[tuple[object, Recorder]] = []
         self.executor: SingleThreadedExecutor | None = None
 
     def __enter__(self) -> RosClient:
@@ -215,12 +257,15 @@ class RosClient:
         for key, value in ros_environment(self.domain_id).items():
             if key != "ROS_DOMAIN_ID":
                 os.environ[key] = value
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(client_profile())
         self.context = Context()
         # No rclpy signal handlers: Ctrl-C and pytest-timeout must keep working as usual.
         rclpy.init(context=self.context, domain_id=self.domain_id,
                    signal_handler_options=SignalHandlerOptions.NO)
         try:
             self.node = rclpy.create_node(self.name, context=self.context)
+            self.recording_node = rclpy.create_node(f"{self.name}_recorder",
+                                                    context=self.context)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
             if self.realtime_priority > 0:
@@ -239,18 +284,34 @@ class RosClient:
         if self.executor is not None:
             self.executor.shutdown(timeout_sec=1.0)
             self.executor = None
-        if self.node is not None:
-            self.node.destroy_node()
-            self.node = None
+        self._recorded.clear()
+        for node in (self.node, self.recording_node):
+            if node is not None:
+                node.destroy_node()
+        self.node = self.recording_node = None
         if self.context is not None:
             rclpy.try_shutdown(context=self.context)
             self.context = None
 
     def record(self, msg_type, topic: str, qos: QoSProfile | int = 2000) -> Recorder:
-        """Record a topic; the deep default history rides out seconds of this process lagging."""
+        """Record a topic into a `Recorder`, filled whenever this client spins.
+
+        Recorded subscriptions live on a second node that no executor waits on; `spin_until`
+        takes their messages directly (as ``rclpy.wait_for_message`` does). Measured here, an
+        executor callback costs ~390 us per message and a direct take ~140 us: with two 1 kHz
+        topics the executor alone would need most of a loaded core and fall seconds behind.
+        The deep default history keeps every message while the test is busy elsewhere.
+        """
         recorder = Recorder()
-        self.node.create_subscription(msg_type, topic, recorder, qos)
+        sub = self.recording_node.create_subscription(msg_type, topic, recorder, qos)
+        self._recorded.append((sub, recorder))
         return recorder
+
+    def _take_recorded(self) -> None:
+        for sub, recorder in self._recorded:
+            with sub.handle:
+                while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                    recorder(*taken)
 
     def publisher(self, msg_type, topic: str, qos: QoSProfile | int = 10):
         return self.node.create_publisher(msg_type, topic, qos)
@@ -258,22 +319,19 @@ class RosClient:
     def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
         """Spin until ``predicate()`` is true; False once ``timeout_s`` has passed.
 
-        Each wait is at most 10 ms, so the call returns within the timeout plus the duration
-        of one callback. The predicate is polled at most every 2 ms: with 1 kHz topics a
-        check per message would cost more than taking the messages.
+        Each round takes the recorded messages, checks the predicate, then serves timers and
+        other callbacks for at most 2 ms, so the call returns within the timeout plus one
+        round.
         """
         deadline = time.monotonic() + timeout_s
-        next_check = 0.0
         while True:
-            now = time.monotonic()
-            if now >= next_check:
-                if predicate():
-                    return True
-                next_check = now + 0.002
-            remaining = deadline - now
+            self._take_recorded()
+            if predicate():
+                return True
+            remaining = deadline - time.monotonic()
             if remaining <= 0.0:
-                return bool(predicate())
-            self.executor.spin_once(timeout_sec=min(remaining, 0.01))
+                return False
+            self.executor.spin_once(timeout_sec=min(remaining, 0.002))
 
     def spin_for(self, seconds: float) -> None:
         self.spin_until(lambda: False, seconds)
@@ -376,10 +434,73 @@ def measure_image_latency(domain_id: int, shm_profile: bool, count: int = 60,
             "p90_ms": float(np.percentile(ms, 90)), "max_ms": float(ms.max())}
 
 
+# ------------------------------------------------------------------ 1 kHz loop timing
+
+def measure_loop_timing(domain_id: int, seconds: float,
+                        params: Mapping[str, object] | None = None) -> dict[str, str]:
+    """Run mock_panda and controller closed loop for ``seconds``; their loop-timing lines.
+
+    Both start from their ``config/*.yaml`` (plus ``params`` for both); the lines are what
+    each node logs at shutdown (`damon_ros.nodes.common.FixedRateLoop.summary`).
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        env = node_env(domain_id, Path(tmp))
+        procs = {name: start_node(name, params, env, Path(tmp) / f"{name}.log",
+                                  params_file=ROOT / "config" / f"{name}.yaml")
+                 for name in ("mock_panda", "controller")}
+        time.sleep(seconds + 3.0)  # start-up (imports, discovery) is not in the loop timing
+        logs = {name: stop_node(proc)[1] for name, proc in procs.items()}
+    return {name: next((line for line in log.splitlines() if "loop timing" in line), log[-500:])
+            for name, log in logs.items()}
+
+
+# ------------------------------------------------------------------ fake planner heartbeat
+
+def start_heartbeat(env: Mapping[str, str], log_path: Path, rate_hz: float = 20.0,
+                    topic: str = "/damon/planner_status") -> subprocess.Popen:
+    """A process that publishes an OK ``DiagnosticArray`` on ``topic`` at ``rate_hz``.
+
+    A process of its own, not a timer of the test client: a small process wakes on time on
+    a loaded machine, a busy test process may not. SIGSTOP / SIGCONT make it fall silent
+    and resume exactly; stop it with `stop_node`.
+    """
+    cmd = [sys.executable, str(Path(__file__).resolve()), "_heartbeat", "--rate", str(rate_hz),
+           "--topic", topic]
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(cmd, env=dict(env), stdout=log, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+    proc.log_path = Path(log_path)
+    return proc
+
+
+def _heartbeat(rate_hz: float, topic: str) -> int:
+    """Child process: the fake planner's status messages until SIGINT/SIGTERM."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init()
+    node = rclpy.create_node("fake_planner")
+    pub = node.create_publisher(DiagnosticArray, topic, 10)
+    msg = DiagnosticArray(status=[DiagnosticStatus(name="fake planner", message="alive")])
+    node.create_timer(1.0 / rate_hz, lambda: pub.publish(msg))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
 def _main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python test/rosutil.py",
                                      description="ROS test harness utilities.")
-    parser.add_argument("mode", choices=("image-latency", "_image_pub", "_image_sub"))
+    parser.add_argument("mode", choices=("image-latency", "loop-timing", "_image_pub",
+                                         "_image_sub", "_heartbeat"))
+    parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument("--priority", type=int, default=None,
+                        help="loop-timing: realtime_priority of both nodes (default: YAML)")
+    parser.add_argument("--topic", default="/damon/planner_status")
     parser.add_argument("--domain", type=int, default=57)
     parser.add_argument("--count", type=int, default=100)
     parser.add_argument("--rate", type=float, default=20.0)
@@ -389,6 +510,13 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return _image_publisher(args.domain, args.count, args.rate)
     if args.mode == "_image_sub":
         return _image_subscriber(args.domain, args.count, args.timeout)
+    if args.mode == "_heartbeat":
+        return _heartbeat(args.rate, args.topic)
+    if args.mode == "loop-timing":
+        params = None if args.priority is None else {"realtime_priority": args.priority}
+        for name, line in measure_loop_timing(args.domain, args.seconds, params).items():
+            print(f"{name}: {line}")
+        return 0
     for shm in (False, True):
         stats = measure_image_latency(args.domain, shm, args.count, args.rate, args.timeout)
         label = "shared-memory profile" if shm else "Fast DDS defaults    "

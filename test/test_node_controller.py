@@ -1,7 +1,7 @@
 """controller as a real process over real DDS, closed loop with mock_panda.
 
 One controller and one mock_panda, both started from their ``config/*.yaml`` (the controller
-with the planner heartbeat watchdog on, fed by a fake planner in this test), serve the
+with the planner heartbeat watchdog on, fed by a fake planner process), serve the
 tests of this module. The fixture first starts the controller alone and checks that it
 commands nothing before the first joint state, and at the end checks that SIGINT/SIGTERM
 end both nodes with exit code 0. Stale joint states are made exact by freezing mock_panda
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import rosutil
 from builtin_interfaces.msg import Duration
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -64,8 +64,8 @@ class Arm:
     commands: rosutil.Recorder
     controller_state: rosutil.Recorder
     trajectories: object
-    heartbeat_on: bool = True  # the fake planner's /damon/planner_status at 20 Hz
-    last_heartbeat: float = 0.0  # system time of the last one sent
+    planner: subprocess.Popen | None = None  # /damon/planner_status at 20 Hz
+    heartbeats: rosutil.Recorder | None = None
     commands_before_first_state: int = -1
 
     def q(self) -> np.ndarray:
@@ -83,6 +83,9 @@ class Arm:
                 return source
         return None
 
+    def stale_count(self) -> int:
+        return len(rosutil.log_lines(self.controller, "joint states stale"))
+
     def logs(self) -> str:
         return _log(self.controller, "controller") + _log(self.mock, "mock_panda")
 
@@ -96,15 +99,8 @@ def _start_arm(ros: rosutil.RosClient, env: dict, tmp: Path) -> Arm:
               ros.record(Float64MultiArray, "/damon/joint_commands"),
               ros.record(JointState, "/damon/controller_state"),
               ros.publisher(JointTrajectory, "/damon/joint_trajectory"))
-    beats = ros.publisher(DiagnosticArray, "/damon/planner_status")
-    planner = DiagnosticArray(status=[DiagnosticStatus(name="fake planner")])
-
-    def beat() -> None:
-        if arm.heartbeat_on:
-            beats.publish(planner)
-            arm.last_heartbeat = time.time()
-
-    ros.node.create_timer(0.05, beat)
+    arm.planner = rosutil.start_heartbeat(env, tmp / "planner.log")
+    arm.heartbeats = ros.record(DiagnosticArray, "/damon/planner_status")
     # The controller alone: its command publisher is up, yet it commands nothing.
     ros.wait_for_publishers("/damon/joint_commands", 1, 20.0)
     ros.spin_for(0.3)
@@ -123,17 +119,17 @@ def arm(tmp_path_factory):
     try:
         with rosutil.RosClient(domain) as ros:
             arm = _start_arm(ros, env, tmp)
-            procs = [arm.controller, arm.mock]
+            procs = [arm.controller, arm.mock, arm.planner]
             assert ros.spin_until(lambda: len(arm.commands) > 10 and len(arm.states) > 10,
                                   20.0), arm.logs()
             assert ros.wait_for_subscribers(arm.trajectories, 1, 10.0), arm.logs()
             yield arm
     finally:
         t0 = time.monotonic()
-        results = [rosutil.stop_node(p, first_signal=sig)
-                   for p, sig in zip(procs, (signal.SIGTERM, signal.SIGINT), strict=False)]
+        results = [rosutil.stop_node(p, first_signal=sig) for p, sig in
+                   zip(procs, (signal.SIGTERM, signal.SIGINT, signal.SIGINT), strict=False)]
         stop_s = time.monotonic() - t0
-    for code, log in results:
+    for code, log in results[:2]:
         assert code == 0, log[-4000:]
         assert "loop timing" in log
     assert stop_s < 5.0
@@ -143,22 +139,45 @@ def test_nothing_is_commanded_before_the_first_joint_state(arm: Arm):
     assert arm.commands_before_first_state == 0
 
 
-def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
-    assert arm.settle()
-    q0 = arm.q()
-    goal = q0 + np.array([0.3, -0.2, 0.25, 0.3, -0.3, 0.2, 0.4])
+def _send_and_reach(arm: Arm, q0: np.ndarray, goal: np.ndarray) -> float | None:
+    """Send a two-point trajectory q0 -> goal (1.5 s); when the mock reached the goal, or None.
+
+    The time is the mock's own publication time of the first joint state within TOLERANCE,
+    measured from the moment the trajectory was sent.
+    """
     mid = 0.5 * (q0 + goal)
     # Joints listed in another order than the controller's: reordering by name is accepted.
     order = [6, 0, 3, 1, 5, 2, 4]
     rows = np.array([mid, goal])[:, order]
     velocities = np.array([0.5 * (goal - q0) / 0.75, np.zeros(7)])[:, order]
+    msg = trajectory([0.75, 1.5], rows, velocities, names=[NAMES[j] for j in order])
+    sent = time.time()
+    arm.trajectories.publish(msg)
+
+    def reached() -> float | None:
+        for source, state in arm.states.published_after(sent):
+            if np.max(np.abs(np.array(state.position) - goal)) < TOLERANCE:
+                return source - sent
+        return None
+
+    arm.ros.spin_until(lambda: reached() is not None, 6.0)
+    return reached()
+
+
+def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + np.array([0.3, -0.2, 0.25, 0.3, -0.3, 0.2, 0.4])
     start = len(arm.commands)
-    arm.trajectories.publish(trajectory([0.75, 1.5], rows, velocities,
-                                        names=[NAMES[j] for j in order]))
-    sent = time.monotonic()
-    assert arm.ros.spin_until(lambda: np.max(np.abs(arm.q() - goal)) < TOLERANCE, 5.0), \
-        arm.logs()
-    reached = time.monotonic() - sent
+    for _ in range(2):
+        stale = arm.stale_count()
+        reached = _send_and_reach(arm, arm.q(), goal)
+        # Only a logged stale-joint-state abort (a stall of this shared machine, which the
+        # controller must answer by stopping) excuses a miss, and only once.
+        if reached is not None or arm.stale_count() == stale:
+            break
+        assert arm.settle()
+    assert reached is not None, arm.logs()
     assert 1.3 < reached < 2.5, reached  # follows the timing, not just the end point
     arm.ros.spin_for(0.5)
     assert np.max(np.abs(arm.q() - goal)) < TOLERANCE  # holds
@@ -217,30 +236,64 @@ def test_empty_trajectory_stops_and_holds(arm: Arm):
     assert "empty trajectory" in rosutil.read_log(arm.controller)
 
 
-def test_silent_planner_holds_the_arm(arm: Arm):
-    assert arm.settle()
-    q0 = arm.q()
-    goal = q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+def _last_before_silence(ros: rosutil.RosClient, recorder: rosutil.Recorder,
+                         quiet_s: float = 0.3, timeout_s: float = 10.0) -> float:
+    """Publication time of the last message of a stream that has stopped.
+
+    This process may take messages late; only once nothing new came for ``quiet_s`` is the
+    last one recorded the last one sent.
+    """
+    seen = [len(recorder), time.monotonic()]
+
+    def quiet() -> bool:
+        if len(recorder) != seen[0]:
+            seen[:] = [len(recorder), time.monotonic()]
+        return time.monotonic() - seen[1] > quiet_s
+
+    assert ros.spin_until(quiet, timeout_s), "the stream did not stop"
+    return recorder.sources[-1]
+
+
+def _silence_the_planner(arm: Arm, goal: np.ndarray) -> float:
+    """Start a move to ``goal``, stop the planner's heartbeat; when the arm was stopped.
+
+    The time runs from the planner's last heartbeat to the controller's first command
+    below 0.01 rad/s, both publication times.
+    """
     arm.trajectories.publish(trajectory([2.0], [goal], [np.zeros(7)]))
     arm.ros.spin_for(0.3)
-    lines = len(rosutil.log_lines(arm.controller, "no /damon/planner_status"))
-    arm.heartbeat_on = False
-    silent = arm.last_heartbeat
+    arm.planner.send_signal(signal.SIGSTOP)  # the planner falls silent, exactly
     try:
+        silent = _last_before_silence(arm.ros, arm.heartbeats)
         # Holding is position control: the command settles near zero, not exactly at it.
-        assert arm.ros.spin_until(lambda: arm.first_command_below(silent, 0.01), 3.0), \
+        assert arm.ros.spin_until(lambda: arm.first_command_below(silent, 0.01), 5.0), \
             arm.logs()
         stopped = arm.first_command_below(silent, 0.01) - silent
-        print(f"\nsilent planner: holding {1e3 * stopped:.1f} ms after its last heartbeat "
-              f"(timeout {1e3 * HEARTBEAT_S:.0f} ms)")
-        assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 0.1, stopped
         assert arm.settle()
-        arm.ros.spin_for(0.2)
-        assert arm.q()[0] < goal[0] - 0.05  # it never got there
-        np.testing.assert_allclose(arm.controller_state.last.velocity, 0.0)  # holding
-        assert len(rosutil.log_lines(arm.controller, "no /damon/planner_status")) == lines + 1
     finally:
-        arm.heartbeat_on = True
+        arm.planner.send_signal(signal.SIGCONT)
+    n = len(arm.heartbeats)
+    assert arm.ros.spin_until(lambda: len(arm.heartbeats) > n + 2, 5.0)
+    return stopped
+
+
+def test_silent_planner_holds_the_arm(arm: Arm):
+    assert arm.settle()
+    for _ in range(2):  # a logged stale-joint-state stop spoils one attempt (see above)
+        stale = arm.stale_count()
+        lines = len(rosutil.log_lines(arm.controller, "no /damon/planner_status"))
+        goal = arm.q() + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        stopped = _silence_the_planner(arm, goal)
+        if arm.stale_count() == stale:
+            break
+        arm.trajectories.publish(JointTrajectory(joint_names=NAMES))
+        assert arm.settle()
+    print(f"\nsilent planner: holding {1e3 * stopped:.1f} ms after its last heartbeat "
+          f"(timeout {1e3 * HEARTBEAT_S:.0f} ms)")
+    assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 0.1, stopped
+    assert arm.q()[0] < goal[0] - 0.05  # it never got there
+    np.testing.assert_allclose(arm.controller_state.last.velocity, 0.0)  # holding
+    assert len(rosutil.log_lines(arm.controller, "no /damon/planner_status")) == lines + 1
 
 
 def _braking_start(commands: rosutil.Recorder, zero: float) -> float:
@@ -266,9 +319,8 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
     arm.ros.spin_for(0.5)  # accelerating along the quintic
     arm.mock.send_signal(signal.SIGSTOP)  # joint states stop, exactly
     try:
-        arm.ros.spin_for(0.3)
-        last_state = arm.states.sources[-1]  # when the mock published its last state
-        assert arm.ros.spin_until(lambda: arm.first_command_below(last_state, 0.0), 2.0)
+        last_state = _last_before_silence(arm.ros, arm.states)
+        assert arm.ros.spin_until(lambda: arm.first_command_below(last_state, 0.0), 5.0)
         zero = arm.first_command_below(last_state, 0.0)
         braking = _braking_start(arm.commands, zero) - last_state
         to_zero = zero - last_state
@@ -278,7 +330,7 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
           f"{1e3 * to_zero:.1f} ms (timeout {1e3 * JS_TIMEOUT_S:.0f} ms)")
     # Braking starts once the states are JS_TIMEOUT_S old (+ one tick + DDS + wake-up); the
     # ramp to zero keeps to the acceleration and jerk limits: ~25 ms from this speed.
-    assert JS_TIMEOUT_S < braking < JS_TIMEOUT_S + 0.015, braking
+    assert JS_TIMEOUT_S - 0.002 < braking < JS_TIMEOUT_S + 0.015, braking
     assert braking < to_zero < braking + 0.05, to_zero
     assert len(rosutil.log_lines(arm.controller, "joint states stale")) == lines + 1
     assert arm.ros.spin_until(
@@ -287,6 +339,22 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
     q_hold = arm.q()
     arm.ros.spin_for(0.3)
     assert np.max(np.abs(arm.q() - q_hold)) < 1e-3  # holds where it is, no lurch
+
+
+def test_runs_with_its_defaults(tmp_path: Path):
+    """No params file at all: the built-in defaults start the node; SIGTERM ends it."""
+    domain = rosutil.next_domain_id(__file__)
+    proc = rosutil.start_node("controller", None, rosutil.node_env(domain, tmp_path),
+                              tmp_path / "controller.log")
+    try:
+        with rosutil.RosClient(domain) as ros:
+            assert ros.wait_for_publishers("/damon/joint_commands", 1, 20.0), rosutil.read_log(proc)
+    finally:
+        code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
+    assert code == 0, log[-4000:]
+    problems = [line for line in log.splitlines()  # a refused RT priority is no problem
+                if ("WARN" in line or "ERROR" in line) and "SCHED_FIFO" not in line]
+    assert not problems, log[-4000:]
 
 
 def test_help_and_bad_parameters(tmp_path: Path):

@@ -247,6 +247,22 @@ def test_shared_memory_profile_carries_camera_images():
     assert stats["median_ms"] < 10.0, stats
 
 
+def test_runs_with_its_defaults(tmp_path: Path):
+    """No params file at all: the built-in defaults start the node; SIGTERM ends it."""
+    domain = rosutil.next_domain_id(__file__)
+    proc = rosutil.start_node("mock_panda", None, rosutil.node_env(domain, tmp_path),
+                              tmp_path / "mock_panda.log")
+    try:
+        with rosutil.RosClient(domain) as ros:
+            assert ros.wait_for_publishers("/joint_states", 1, 20.0), rosutil.read_log(proc)
+    finally:
+        code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
+    assert code == 0, log[-4000:]
+    problems = [line for line in log.splitlines()  # a refused RT priority is no problem
+                if ("WARN" in line or "ERROR" in line) and "SCHED_FIFO" not in line]
+    assert not problems, log[-4000:]
+
+
 def test_help_and_bad_parameters():
     out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.mock_panda", "--help"],
                          capture_output=True, text=True, timeout=30)

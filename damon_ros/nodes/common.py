@@ -96,7 +96,7 @@ def ros_environment(domain_id: int) -> dict[str, str]:
 
     The demo and the tests start several node processes; giving them one ``ROS_DOMAIN_ID``,
     discovery limited to this machine and Fast DDS with the shared-memory profile keeps
-    concurrent runs apart and moves 640x480 images in ~2 ms instead of ~13 ms. Merge the
+    concurrent runs apart and moves 640x480 images in ~3 ms instead of ~13 ms. Merge the
     result into ``os.environ`` (or a copy of it) before starting a process or calling
     ``rclpy.init``: the RMW reads these once per process.
     """

@@ -19,7 +19,9 @@ missing input:
 - Joint states older than ``joint_state_timeout_s``: the trajectory is aborted and the
   command brakes to zero velocity as fast as the limit profile allows (a step to zero would
   break the acceleration and jerk limits a Franka enforces), then zeros are published while
-  the states stay stale. Logged once; when states return the arm holds where it is.
+  the states stay stale. Logged once; when states return the arm holds where it is. A
+  joint state holding NaN/inf, or lacking a controller joint, is ignored (throttled
+  warning), so that a stream of them ends in this stop.
 - ``planner_heartbeat_timeout_s`` > 0: while a trajectory is active and no
   ``/damon/planner_status`` arrived for that long, the arm holds (logged once per lapse).
 
@@ -176,6 +178,11 @@ class Controller(Node):
                 throttle_duration_sec=WARN_EVERY_S)
             return
         q = np.asarray(msg.position, dtype=float)[index]
+        if not np.all(np.isfinite(q)):
+            # Not a measurement: ignored, so that a stream of them ends in the stale stop.
+            self.get_logger().warning("ignored joint state holding NaN or inf",
+                                      throttle_duration_sec=WARN_EVERY_S)
+            return
         with self._lock:
             self._q, self._q_time = q, t
 
