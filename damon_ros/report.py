@@ -56,9 +56,10 @@ def paper_table(records: list[dict]) -> list[str]:
                      f"| {_fmt(_median([r['path_length_rad'] for r in ok]))} | {s_paper} | "
                      f"{100 * len(ok) / len(rs):.0f} % | {len(rs)} |")
     lines.append("\nOurs: T is simulated time from the goal to the goal held (planning, "
-                 "re-planning and motion); smoothness is FORMAT.md's `path_length_rad`, Σ‖ΔΘ‖ over the "
-                 "executed joint path sampled at the control rate. The paper sums over its via "
-                 "points, so the two smoothness columns are not the same measure.")
+                 "re-planning and motion); smoothness is FORMAT.md's `path_length_rad`, "
+                 "Σ‖ΔΘ‖ over the executed joint path sampled at the control rate. The paper "
+                 "sums over its via points, so the two smoothness columns are not the same "
+                 "measure.")
     for kind, dynamic in (("static", False), ("dynamic", True)):
         rs = [r for r in records if r.get("planner") == "damon" and "dynamic" in r
               and r["dynamic"] == dynamic]
