@@ -1,0 +1,62 @@
+"""damon-ros bench: JSON lines as FORMAT.md says, and contact scored on the exact meshes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from damon_ros.bench import main as bench
+from damon_ros.closed_loop import SimConfig, run_scenario
+from damon_ros.planner import Planner, PlanResult
+from damon_ros.robot import Robot
+from damon_ros.runtime import ReactivePlanner
+from damon_ros.scenario import load_public_scenarios, public_scenarios_dir
+
+FIELDS = {"scenario", "planner", "success", "collided", "min_clearance_m", "total_time_s",
+          "planning_time_s", "replans", "replan_latency_ms", "path_length_rad",
+          "max_joint_velocity", "max_joint_acceleration", "limits_respected", "error"}
+
+
+def test_two_scenarios_two_planners_write_every_field(tmp_path, capsys):
+    out = tmp_path / "results.jsonl"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: 1\nname: broken\n")
+    scenarios = [str(public_scenarios_dir() / n) for n in ("B-001.yaml", "G-002.yaml")]
+    assert bench(["--scenarios", *scenarios, str(bad), "--planners", "damon,rrtconnect",
+                  "--out", str(out), "--quiet"]) == 0
+    lines = [json.loads(x) for x in out.read_text().splitlines()]
+    errors = [r for r in lines if "planner" not in r]
+    runs = [r for r in lines if "planner" in r]
+    assert len(errors) == 1 and "bad.yaml" in errors[0]["error"]
+    assert {(r["scenario"], r["planner"]) for r in runs} == {
+        (s, p) for s in ("B-001", "G-002") for p in ("damon", "rrtconnect")}
+    for r in runs:
+        assert FIELDS <= set(r), FIELDS - set(r)
+        assert r["success"] and not r["collided"] and r["limits_respected"]
+        assert r["min_clearance_m"] > 0 and r["total_time_s"] > r["planning_time_s"] > 0
+        assert r["planner_settings"]
+    table = capsys.readouterr().out
+    assert "family" in table and "rrtconnect" in table
+
+
+class _Reckless(Planner):
+    """Deliberately unsafe: always the straight line, never checked."""
+
+    def _route(self, q_start, q_goal, scene) -> PlanResult:
+        path = np.array([q_start, q_goal])
+        return PlanResult(True, "", path=path, trajectory=self._time_parameterize(path),
+                          goal_q=q_goal)
+
+
+def test_a_colliding_planner_run_is_scored_as_contact():
+    scenario = next(s for s in load_public_scenarios() if s.name == "A-001")
+    fast, mesh = Robot("fast"), Robot("mesh")
+    # the straight line from start to goal goes through A-001's box
+    q_goal = scenario.goal.joints
+    states = scenario.start + np.linspace(0, 1, 50)[:, None] * (q_goal - scenario.start)
+    assert mesh.distances(states, scenario.obstacles_at(0.0)).min() < 0
+    runtime = ReactivePlanner(_Reckless(None, fast, fast.limits))
+    record = run_scenario(scenario, runtime, "reckless", mesh, fast, SimConfig())
+    assert record.collided and not record.success
+    assert record.min_clearance_m <= 0.0
