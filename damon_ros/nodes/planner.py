@@ -76,6 +76,8 @@ class PlannerNode(Node):
                                jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"])
         planner = Planner(self.model.graph, self.robot, self.limits, config)
         planner.warm_up()
+        # TCP positions of every vertex, for the graph markers (not on the first goal's path)
+        self._vertex_tcp = np.array([self.robot.tcp_pose(q)[0] for q in self.model.graph.q])
         self.runtime = ReactivePlanner(planner, RuntimeConfig(
             prediction_horizon_s=p["prediction_horizon_s"],
             perception_timeout_s=p["perception_timeout_s"]),
@@ -89,7 +91,6 @@ class PlannerNode(Node):
         self.obstacle_stamp = -math.inf
         self.obstacle_received = -math.inf
         self.last_event = "idle"
-        self._vertex_tcp: np.ndarray | None = None
 
         sensors = ReentrantCallbackGroup()
         planning = MutuallyExclusiveCallbackGroup()
@@ -307,8 +308,6 @@ class PlannerNode(Node):
     def _graph_markers(self, result) -> MarkerArray:
         """The searched subgraph's vertices (as TCP positions) and the certified route."""
         graph = self.model.graph
-        if self._vertex_tcp is None:
-            self._vertex_tcp = np.array([self.robot.tcp_pose(q)[0] for q in graph.q])
         nodes = graph.nearest_nodes(graph.nodes[max(result.subgraph, 0)],
                                     k=max(1, result.searched_nodes))
         members = np.concatenate([graph.members[m] for m in nodes])[:5000]
