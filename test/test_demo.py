@@ -80,7 +80,7 @@ def crossing_scenario(tmp_path):
     for fraction in (0.5, 0.6, 0.4, 0.7, 0.3):
         on_route = plan.trajectory.sample(fraction * plan.trajectory.duration)[0]
         target = robot.fk(on_route, "panda_hand")[:3, 3]
-        parked = target + np.array([0.0, 0.0, 0.35])  # drops in at ~1.2 m/s
+        parked = target + np.array([0.0, 0.0, 0.35])  # it drops in as the plan goes out
         if clear_of_start_and_goal(target) and clear_of_start_and_goal(parked):
             break
     else:
@@ -91,8 +91,8 @@ def crossing_scenario(tmp_path):
     data["obstacles"] = [{
         "name": "ball", "shape": "sphere", "size": [0.05], "color": "green",
         "pose": {"position": parked, "orientation": [0, 0, 0, 1]},
-        "motion": {"type": "waypoints", "waypoints": [[0.0, *parked], [0.05, *parked],
-                                                       [0.35, *target.tolist()]]},
+        "motion": {"type": "waypoints", "waypoints": [[0.0, *parked],
+                                                       [0.15, *target.tolist()]]},
     }]
     path = tmp_path / "crossing.yaml"
     path.write_text(yaml.safe_dump(data))
