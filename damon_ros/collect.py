@@ -56,6 +56,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from damon_ros.model import sha256
+
 DATASET_FORMAT = "damon_ros-dataset"
 DATASET_VERSION = 1
 SIDECAR = "dataset.json"
@@ -510,14 +512,6 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_samples: int,
                    reports: list[dict], wall: float, workers: int) -> dict:
     """Summarise every chunk of the data set (read back from disk) into ``dataset.json``."""
@@ -531,7 +525,7 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
         seeking = arrays["source"] == 1
         counts["contact_seeking"] += int(seeking.sum())
         counts["collision_contact_seeking"] += int((arrays["collision"] & seeking).sum())
-        chunks.append({"file": path.name, "rows": size, "sha256": _sha256(path)})
+        chunks.append({"file": path.name, "rows": size, "sha256": sha256(path)})
     counts["samples"] = n_samples
     counts["free"] = n_samples - counts["collision"]
     generated = sum(r["size"] for r in reports)
@@ -597,7 +591,7 @@ def load_dataset(out_dir: str | Path,
         path = out_dir / entry["file"]
         if not path.is_file():
             raise CollectError(f"{path}: listed in {SIDECAR} but missing")
-        if verify_hashes and _sha256(path) != entry["sha256"]:
+        if verify_hashes and sha256(path) != entry["sha256"]:
             raise CollectError(f"{path}: SHA-256 does not match {SIDECAR} — the chunk was "
                                "truncated, replaced or modified")
         arrays = _read_chunk(path)

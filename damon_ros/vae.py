@@ -23,7 +23,6 @@ torch is imported only to train.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
@@ -33,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from damon_ros.model import sha256
 
 VAE_FORMAT = "damon_ros-vae"
 VAE_VERSION = 2
@@ -408,14 +409,6 @@ def evaluate(vae: VAE, held_out, reference=None, seed: int = 0,
 
 
 # ---- files ----------------------------------------------------------------------------
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def save_vae(vae: VAE, directory: str | Path, record: dict | None = None) -> dict:
     """Write ``vae.safetensors`` and ``vae.json``; return the JSON dict (architecture,
     normalisation, the weights' SHA-256 and ``record``, e.g. training metrics) for the
@@ -430,7 +423,7 @@ def save_vae(vae: VAE, directory: str | Path, record: dict | None = None) -> dic
               metadata={"format": VAE_FORMAT, "version": str(VAE_VERSION),
                         "architecture": json.dumps(arch, sort_keys=True)})
     config = {"format": VAE_FORMAT, "version": VAE_VERSION, "architecture": arch,
-              "mean": vae.mean.tolist(), "std": vae.std.tolist(), "sha256": _sha256(weights),
+              "mean": vae.mean.tolist(), "std": vae.std.tolist(), "sha256": sha256(weights),
               **(record or {})}
     (directory / CONFIG_FILE).write_text(json.dumps(config, indent=1) + "\n")
     return config
@@ -471,7 +464,7 @@ def load_vae(directory: str | Path, config: dict | None = None) -> VAE:
     path = directory / WEIGHTS_FILE
     if not path.is_file():
         raise VAEError(f"{path}: missing")
-    if _sha256(path) != config.get("sha256"):
+    if sha256(path) != config.get("sha256"):
         raise VAEError(f"{path}: SHA-256 does not match {where} — the file is truncated, "
                        "swapped or modified")
     try:
