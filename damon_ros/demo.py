@@ -49,6 +49,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--startup-s", type=float, default=12.0,
                    help="seconds the nodes get to start before the scenario clock runs")
     p.add_argument("--no-plots", action="store_true", help="skip plots and animation")
+    p.add_argument("--velocity-scale", type=float, default=None,
+                   help="planner velocity_scale (fraction of the velocity limits; default: "
+                        "config/planner.yaml)")
     return p
 
 
@@ -89,7 +92,8 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     nodes = {
         "mock_panda": ("mock_panda", {**common, "contact_check": True}, None),
         "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0}, None),
-        "planner": ("planner", {"model_dir": args.model or ""},
+        "planner": ("planner", {"model_dir": args.model or "", **(
+            {} if args.velocity_scale is None else {"velocity_scale": args.velocity_scale})},
                     {"/damon/obstacles": "/damon/sim/obstacles"} if args.no_camera else None),
         "mock_camera": ("mock_camera", {**common, **truth, "publish_images": not args.no_camera},
                         None),

@@ -77,10 +77,10 @@ def crossing_scenario(tmp_path):
         return robot.clearance(start, ball).distance > 0.12 and \
             robot.clearance(end, ball).distance > 0.1
 
-    for fraction in (0.5, 0.6, 0.4, 0.7, 0.3):
+    for fraction in (0.7, 0.6, 0.5, 0.4):
         on_route = plan.trajectory.sample(fraction * plan.trajectory.duration)[0]
         target = robot.fk(on_route, "panda_hand")[:3, 3]
-        parked = target + np.array([0.0, 0.0, 0.35])  # it drops in as the plan goes out
+        parked = target + np.array([0.0, 0.0, 0.35])  # it drops in at 0.6 m/s
         if clear_of_start_and_goal(target) and clear_of_start_and_goal(parked):
             break
     else:
@@ -92,7 +92,7 @@ def crossing_scenario(tmp_path):
         "name": "ball", "shape": "sphere", "size": [0.05], "color": "green",
         "pose": {"position": parked, "orientation": [0, 0, 0, 1]},
         "motion": {"type": "waypoints", "waypoints": [[0.0, *parked],
-                                                       [0.15, *target.tolist()]]},
+                                                       [0.6, *target.tolist()]]},
     }]
     path = tmp_path / "crossing.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -100,7 +100,10 @@ def crossing_scenario(tmp_path):
 
 
 def test_an_obstacle_moved_into_the_path_is_avoided(tmp_path, crossing_scenario):
-    run = _demo(tmp_path, "--scenario", str(crossing_scenario), "--no-camera", "--no-plots")
+    # a slow arm (0.3 of the velocity limits) so that the test measures the re-route, not a
+    # race between a falling ball and this loaded 2-core machine
+    run = _demo(tmp_path, "--scenario", str(crossing_scenario), "--no-camera", "--no-plots",
+                "--velocity-scale", "0.3")
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "success             True" in run.stdout
     assert _reroutes(run.stdout) >= 1, run.stdout
