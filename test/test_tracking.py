@@ -79,7 +79,7 @@ def _match(detections, shape: Shape, color: str):
 def test_shipped_config_loads_with_red_wrapping_around_hue_zero():
     assert set(CONFIG.colors) == {"red", "green", "blue", "yellow"}
     assert len(CONFIG.colors["red"]) == 2
-    assert CONFIG.shape == "sphere" and 0.01 <= CONFIG.inflation_m <= 0.02
+    assert CONFIG.shape == "auto" and 0.01 <= CONFIG.inflation_m <= 0.02
 
 
 @pytest.mark.parametrize(
