@@ -77,10 +77,10 @@ def crossing_scenario(tmp_path):
         return robot.clearance(start, ball).distance > 0.12 and \
             robot.clearance(end, ball).distance > 0.1
 
-    for fraction in (0.7, 0.6, 0.5, 0.4):
+    for fraction in (0.8, 0.7, 0.6, 0.5):
         on_route = plan.trajectory.sample(fraction * plan.trajectory.duration)[0]
         target = robot.fk(on_route, "panda_hand")[:3, 3]
-        parked = target + np.array([0.0, 0.0, 0.35])  # it drops in at 0.6 m/s
+        parked = target + np.array([0.0, 0.0, 0.35])  # it drops in at 0.35 m/s
         if clear_of_start_and_goal(target) and clear_of_start_and_goal(parked):
             break
     else:
@@ -92,7 +92,7 @@ def crossing_scenario(tmp_path):
         "name": "ball", "shape": "sphere", "size": [0.05], "color": "green",
         "pose": {"position": parked, "orientation": [0, 0, 0, 1]},
         "motion": {"type": "waypoints", "waypoints": [[0.0, *parked],
-                                                       [0.6, *target.tolist()]]},
+                                                       [1.0, *target.tolist()]]},
     }]
     path = tmp_path / "crossing.yaml"
     path.write_text(yaml.safe_dump(data))

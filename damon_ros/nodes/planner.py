@@ -132,7 +132,8 @@ class PlannerNode(Node):
             ("velocity_scale", 0.9, "fraction of the velocity limits", 0.01, 1.0),
             ("acceleration_scale", 0.5, "fraction of the acceleration limits", 0.01, 1.0),
             ("jerk_scale", 0.5, "fraction of the jerk limits", 0.01, 1.0),
-            ("prediction_horizon_s", 0.3, "obstacle sweep horizon (s)", 0.0, 5.0),
+            ("prediction_horizon_s", 1.0, "obstacle sweep horizon (s): at least the time a "
+             "decision takes to reach the arm", 0.0, 5.0),
             ("monitor_rate_hz", 20.0, "fixed-rate path re-check (Hz)", 0.5, 1000.0),
             ("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
              "(0 = off, for a setup without perception)", 0.0, 60.0),
