@@ -91,7 +91,8 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     truth = {"truth_lifetime_frames": 30.0}  # ground truth stays valid for 1 s between frames
     nodes = {
         "mock_panda": ("mock_panda", {**common, "contact_check": True}, None),
-        "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0}, None),
+        "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0,
+                                      "joint_state_timeout_s": 0.1}, None),
         "planner": ("planner", {"model_dir": args.model or "", **(
             {} if args.velocity_scale is None else {"velocity_scale": args.velocity_scale})},
                     {"/damon/obstacles": "/damon/sim/obstacles"} if args.no_camera else None),

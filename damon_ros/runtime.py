@@ -51,6 +51,7 @@ class RuntimeConfig:
     goal_tolerance_rad: float = 0.01
     retry_period_s: float = 0.1  # how often a holding arm looks for a route again
     escape_clearance_m: float = 0.05  # a holding arm moves away when an obstacle is closer
+    stall_time_s: float = 1.5  # an arm that stopped short of the goal this long is re-planned
     perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
 
 
@@ -78,6 +79,8 @@ class ReactivePlanner:
         self.last_retry = -math.inf
         self.last_probability = 0.0
         self.pending_goal = None  # a goal given before obstacle data arrived
+        self._still_q: np.ndarray | None = None  # stall detection
+        self._still_since = 0.0
         self.stats = RuntimeStats()
 
     def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> Scene:
@@ -140,6 +143,9 @@ class ReactivePlanner:
                 if event is not None:
                     return event
             return self._escape_if_threatened(q_now, shapes)
+        if self._stalled(t, q_now):
+            return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
+                                 "controller may have stopped it); re-planning from here")
         if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
             if np.max(np.abs(self.path[-1] - self.planner.goal_q)) > 1e-9:
                 self.state, self.last_retry = "holding", -math.inf  # an escape move ended
@@ -186,7 +192,19 @@ class ReactivePlanner:
         event.reason = why
         return event
 
+    def _stalled(self, t: float, q_now: np.ndarray) -> bool:
+        """No motion for ``stall_time_s`` while executing and away from the path's end."""
+        if self._still_q is None or np.max(np.abs(q_now - self._still_q)) > 0.005:
+            self._still_q, self._still_since = q_now.copy(), t
+            return False
+        away = np.max(np.abs(q_now - self.path[-1])) > self.config.goal_tolerance_rad
+        if away and t - self._still_since > self.config.stall_time_s:
+            self._still_q = None
+            return True
+        return False
+
     def _execute(self, result: PlanResult, latency: float) -> Event:
+        self._still_q = None
         self.state = "executing"
         self.path = result.path
         self.segment = 0
