@@ -304,3 +304,25 @@ def _spin(
         if rclpy.ok():
             rclpy.try_shutdown()
     return 0
+
+
+def node_main(name: str, description: str, parameters: Sequence[tuple[str, str]],
+              node_factory: Callable[[], Node], args: Sequence[str] | None = None,
+              extra_help: str = "", errors: tuple[type[BaseException], ...] = ()) -> int:
+    """A node's console entry point: ``--help`` before any ROS start-up, a one-line error
+    (exit 2) on bad parameters or files, otherwise `run_single_threaded`."""
+    from rclpy.exceptions import ParameterException
+
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--help" in own or "-h" in own:
+        print_help(name, description, parameters)
+        if extra_help:
+            print(f"\n{extra_help}")
+        return 0
+    try:
+        return run_single_threaded(node_factory, argv)
+    except (ValueError, OSError, ParameterException, *errors) as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+

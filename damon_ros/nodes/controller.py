@@ -39,7 +39,6 @@ from collections.abc import Sequence
 import numpy as np
 import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
@@ -280,17 +279,8 @@ class Controller(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
-    argv = list(sys.argv if args is None else args)
-    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
-    if "--help" in own or "-h" in own:
-        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
-        return 0
-    try:
-        return common.run_single_threaded(Controller, argv)
-    except (ValueError, ParameterException) as exc:
-        print(f"{NAME}: {exc}", file=sys.stderr)
-        return 2
+    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
+    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, Controller, args)
 
 
 if __name__ == "__main__":

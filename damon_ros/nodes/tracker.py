@@ -39,7 +39,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
@@ -342,20 +341,14 @@ class TrackerNode(Node):
         self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}")
 
 
-def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point: ``--help`` before any ROS start-up, a one-line error on bad input."""
-    argv = list(sys.argv if args is None else args)
-    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
-    if "--help" in own or "-h" in own:
-        common.print_help(NAME, __doc__.split("\n\n")[0], PARAMETERS)
-        print("\nROS parameters with defaults: config/tracker_node.yaml; the tracking settings "
+EXTRA_HELP = ("ROS parameters with defaults: config/tracker_node.yaml; the tracking settings "
               "themselves: config/tracker.yaml (parameter tracker_config).")
-        return 0
-    try:
-        return common.run_single_threaded(TrackerNode, argv)
-    except (ValueError, OSError, ParameterException) as exc:
-        print(f"{NAME}: {exc}", file=sys.stderr)
-        return 2
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
+    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, TrackerNode, args,
+                            extra_help=EXTRA_HELP)
 
 
 if __name__ == "__main__":
