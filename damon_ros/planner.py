@@ -107,7 +107,7 @@ class _Query:
         self.q_start = q_start
         self.q_goal = q_goal
         self.scene = scene
-        self.start_margin = planner._start_margin(q_start, scene.now)
+        self.start_margin = planner._start_margin(q_start, scene.ahead)
         self.valid: dict[tuple[int, int], bool] = {}
         self.checked = 0
         self.rejected = 0
@@ -141,8 +141,8 @@ class _Query:
         start margin, any other against the swept obstacles with the full margin. A last
         segment into a goal that only the exact meshes accept (a grasp pose close to an
         object) is certified on the exact meshes when the conservative model refuses it."""
-        if first:
-            free = self.p.segment_free(q0, q1, self.scene.now, self.start_margin)
+        if first:  # swept obstacles too: something falling onto the first segment counts
+            free = self.p.segment_free(q0, q1, self.scene.ahead, self.start_margin)
         else:
             free = self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
         if not free and last and self.p.goal_exact:

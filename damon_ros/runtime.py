@@ -69,10 +69,13 @@ class ReactivePlanner:
     """State machine: ``idle`` → ``executing`` ⇄ ``holding`` → ``reached``."""
 
     def __init__(self, planner: Planner, config: RuntimeConfig | None = None,
-                 risk=None) -> None:
+                 risk=None, on_threat=None) -> None:
         self.planner = planner
         self.config = config or RuntimeConfig()
         self.risk = risk  # optional (q, obstacles) -> p(collision), reported only
+        # optional callable(reason) run the moment the path is threatened, before the
+        # re-route is computed: the node stops the arm there (halt, re-route, continue)
+        self.on_threat = on_threat
         self.state = "idle"
         self.path = np.zeros((0, 7))
         self.segment = 0
@@ -159,6 +162,8 @@ class ReactivePlanner:
             q_now, np.vstack([on_path[None], self.path[self.segment + 1:]]), shapes)
         if not threatened:
             return None
+        if self.on_threat is not None:
+            self.on_threat(why)
         return self._reroute(q_now, shapes, why)
 
     def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene) -> Event | None:

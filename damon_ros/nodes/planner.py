@@ -81,7 +81,8 @@ class PlannerNode(Node):
         self.runtime = ReactivePlanner(planner, RuntimeConfig(
             prediction_horizon_s=p["prediction_horizon_s"],
             perception_timeout_s=p["perception_timeout_s"]),
-            risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes))
+            risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes),
+            on_threat=lambda why: self.pub_traj.publish(self._empty_trajectory()))
         self.base_frame = p["base_frame"]
         self.joint_state_timeout = p["joint_state_timeout_s"]
         self.table = ObstacleTable(self.base_frame)
