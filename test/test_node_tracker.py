@@ -33,7 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import Marker, MarkerArray
 
 from damon_ros.markers import ObstacleTable, stamp_seconds, to_stamp
-from damon_ros.nodes import mock_camera, tracker
+from damon_ros.nodes import common, mock_camera, tracker
 from damon_ros.render import load_camera, render, scene_at
 from damon_ros.scenario import load_scenario, public_scenarios_dir
 from damon_ros.shapes import Shape
@@ -153,7 +153,7 @@ def test_render_settings_overrides_and_a_calibration_file_without_mock_render(tm
 
 def test_problem_log_logs_each_kind_once_per_period():
     lines, now = [], [0.0]
-    log = tracker.ProblemLog(lines.append, every_s=10.0, clock=lambda: now[0])
+    log = common.ProblemLog(lines.append, every_s=10.0, clock=lambda: now[0])
     assert log.report("colour image encoding 'bgra8' is not supported")
     assert not log.report("colour image encoding 'bgra8' is not supported")
     assert log.report("depth image is 320x240 but camera_info says 640x480")  # another kind

@@ -20,8 +20,9 @@ missing input:
   command brakes to zero velocity as fast as the limit profile allows (a step to zero would
   break the acceleration and jerk limits a Franka enforces), then zeros are published while
   the states stay stale. Logged once; when states return the arm holds where it is. A
-  joint state holding NaN/inf, or lacking a controller joint, is ignored (throttled
-  warning), so that a stream of them ends in this stop.
+  joint state holding NaN/inf, lacking a controller joint or stamped before the last one
+  (`damon_ros.inputs.JointStateReader`) is ignored with one warning per kind of problem
+  (repeats: one line per 5 s with a count), so that a stream of them ends in this stop.
 - ``planner_heartbeat_timeout_s`` > 0: while a trajectory is active and no
   ``/damon/planner_status`` arrived for that long, the arm holds (logged once per lapse).
 
@@ -46,6 +47,7 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from damon_ros.control import PIDGains, TrajectoryFollower, reorder_points, validate_trajectory
+from damon_ros.inputs import InputError, JointStateReader
 from damon_ros.limits import PROFILES, joint_limits
 from damon_ros.nodes import common
 from damon_ros.trajectory import METHODS
@@ -107,7 +109,8 @@ class Controller(Node):
         self._lock = threading.Lock()  # guards the follower and the latest measurement
         self._q: np.ndarray | None = None
         self._q_time = 0.0  # monotonic arrival time of self._q
-        self._index: tuple[tuple[str, ...], np.ndarray | None] = ((), None)
+        self._reader = JointStateReader(self.names)
+        self._problems = common.ProblemLog(self.get_logger().warning, WARN_EVERY_S)
         self._last_heartbeat = time.monotonic()
         self._stale = False
         self._hb_lapsed = False
@@ -156,32 +159,17 @@ class Controller(Node):
 
     # -- executor side: hand data to the loop
 
-    def _joint_index(self, names: Sequence[str]) -> np.ndarray | None:
-        """Where each controller joint sits in a JointState (cached: names rarely change)."""
-        key = tuple(names)
-        if key != self._index[0]:
-            where = {n: k for k, n in enumerate(key)}
-            index = None
-            if all(n in where for n in self.names):
-                index = np.array([where[n] for n in self.names])
-            self._index = (key, index)
-        return self._index[1]
-
     def _on_joint_state(self, msg: JointState) -> None:
         t = time.monotonic()
-        index = self._joint_index(msg.name)
-        if index is None or len(msg.position) != len(msg.name):
-            self.get_logger().warning(
-                f"ignored joint state: needs positions of {self.names}, got names "
-                f"{list(msg.name)} with {len(msg.position)} positions",
-                throttle_duration_sec=WARN_EVERY_S)
-            return
-        q = np.asarray(msg.position, dtype=float)[index]
-        if not np.all(np.isfinite(q)):
+        resets = self._reader.clock_resets
+        try:
+            q = self._reader.read(msg)
+        except InputError as exc:
             # Not a measurement: ignored, so that a stream of them ends in the stale stop.
-            self.get_logger().warning("ignored joint state holding NaN or inf",
-                                      throttle_duration_sec=WARN_EVERY_S)
+            self._problems.report(f"ignored joint state: {exc}")
             return
+        if self._reader.clock_resets != resets:
+            self.get_logger().info("joint-state stamps jumped back (clock reset): accepted")
         with self._lock:
             self._q, self._q_time = q, t
 

@@ -29,7 +29,9 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
+from damon_ros.inputs import InputError, JointStateReader, goal_problem
 from damon_ros.nodes.common import (
+    ProblemLog,
     declare,
     print_help,
     run,
@@ -86,10 +88,12 @@ class PlannerNode(Node):
         self.base_frame = p["base_frame"]
         self.joint_state_timeout = p["joint_state_timeout_s"]
         self.table = ObstacleTable(self.base_frame)
+        self.joint_reader = JointStateReader(self.limits.names)
+        # one line per kind of bad input at once, repeats of a kind once per 5 s with a count
+        self.problems = ProblemLog(self.get_logger().warning, 5.0)
         self.lock = threading.Lock()
         self.q: np.ndarray | None = None
         self.q_stamp = -math.inf
-        self.obstacle_stamp = -math.inf
         self.obstacle_received = -math.inf
         self.last_event = "idle"
 
@@ -161,18 +165,14 @@ class PlannerNode(Node):
         self._on_joint_state(deserialize_message(data, JointState))
 
     def _on_joint_state(self, msg: JointState) -> None:
+        resets = self.joint_reader.clock_resets
         try:
-            index = [list(msg.name).index(n) for n in self.limits.names]
-        except ValueError:
-            self.get_logger().warn(f"joint_states lack some of {list(self.limits.names)}; "
-                                   "ignored", throttle_duration_sec=5.0)
+            q = self.joint_reader.read(msg)
+        except InputError as exc:
+            self.problems.report(f"ignored joint state: {exc}")
             return
-        q = np.array([msg.position[i] for i in index]) if len(msg.position) == len(
-            msg.name) else None
-        if q is None or not np.all(np.isfinite(q)):
-            self.get_logger().warn("joint_states with missing or non-finite positions; "
-                                   "ignored", throttle_duration_sec=5.0)
-            return
+        if self.joint_reader.clock_resets != resets:
+            self.get_logger().info("joint-state stamps jumped back (clock reset): accepted")
         with self.lock:
             self.q, self.q_stamp = q, self._now()
 
@@ -188,10 +188,11 @@ class PlannerNode(Node):
     def _on_obstacles(self, msg: MarkerArray) -> None:
         received = time.perf_counter()
         now = self._now()
-        for error in self.table.apply(msg.markers, now):
-            self.get_logger().warn(f"obstacle marker refused: {error}",
-                                   throttle_duration_sec=2.0)
-        self.obstacle_received = now
+        errors = self.table.apply(msg.markers, now)
+        for error in errors:
+            self.problems.report(f"obstacle marker refused: {error}")
+        if len(errors) < len(msg.markers) or not msg.markers:
+            self.obstacle_received = now  # perception is alive only if it said something valid
         self._step(received)
 
     def _on_goal(self, msg: PoseStamped) -> None:
@@ -200,7 +201,7 @@ class PlannerNode(Node):
     def _set_goal(self, msg: PoseStamped, received: float):
         from damon_ros.planner import PoseGoal
 
-        problem = self._goal_problem(msg)
+        problem = goal_problem(msg, self.base_frame)
         if problem:
             self.get_logger().error(f"goal refused: {problem}")
             return None
@@ -217,19 +218,6 @@ class PlannerNode(Node):
         event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age)
         self._act(event, received, "goal")
         return event
-
-    def _goal_problem(self, msg: PoseStamped) -> str:
-        frame = msg.header.frame_id
-        if frame not in ("", self.base_frame):
-            return f"frame_id '{frame}' is not the base frame '{self.base_frame}'"
-        p, o = msg.pose.position, msg.pose.orientation
-        values = [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
-        if not all(math.isfinite(v) for v in values):
-            return "pose holds NaN or inf"
-        norm = math.sqrt(o.x**2 + o.y**2 + o.z**2 + o.w**2)
-        if abs(norm - 1.0) > 1e-3:
-            return f"orientation is not a unit quaternion (norm {norm:.4f})"
-        return ""
 
     # ---- the loop ---------------------------------------------------------------------
     def _monitor(self) -> None:

@@ -30,11 +30,10 @@ every ``stats_period_s`` and at shutdown.
 from __future__ import annotations
 
 import math
-import re
 import sys
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,39 +80,6 @@ PARAMETERS = (
 
 
 # --- pure helpers (tested without ROS) --------------------------------------------------------
-
-
-class ProblemLog:
-    """One log line per kind of problem, then at most one per ``every_s`` with a count.
-
-    rclpy's ``throttle_duration_sec`` throttles per call site, so two different problems at
-    one site would hide each other; here the key is the message with its numbers blanked, so
-    "encoding 'bgra8'" and "size 320x240" are separate problems, while the same problem with
-    a new stamp in its text is not.
-    """
-
-    def __init__(self, log: Callable[[str], None], every_s: float,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self._log = log
-        self.every_s = float(every_s)
-        self._clock = clock
-        self._seen: dict[str, tuple[float, int]] = {}  # key -> (last logged, suppressed)
-
-    @staticmethod
-    def key(message: str) -> str:
-        return re.sub(r"\d+(\.\d+)?", "#", message)
-
-    def report(self, message: str) -> bool:
-        """Log ``message`` unless its kind was logged within ``every_s``; True if logged."""
-        key, now = self.key(message), self._clock()
-        last = self._seen.get(key)
-        if last is not None and now - last[0] < self.every_s:
-            self._seen[key] = (last[0], last[1] + 1)
-            return False
-        suppressed = 0 if last is None else last[1]
-        self._log(message if not suppressed else f"{message} ({suppressed} more since)")
-        self._seen[key] = (now, 0)
-        return True
 
 
 def camera_from_info(msg: CameraInfo, calibration: Camera) -> Camera:
@@ -206,7 +172,7 @@ class TrackerNode(Node):
         self.lifetime_s = p["marker_lifetime_s"] or self.config.max_age_s
         self.publish_partial = p["publish_partial"]
         self.sync = FrameSynchronizer(p["sync_tolerance_s"], p["queue_size"])
-        self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
+        self.problems = common.ProblemLog(self.get_logger().warning, p["warn_every_s"])
         self.stats = LatencyStats.empty()
         self.tracker: Tracker | None = None  # built from the first usable camera_info
         self._info_key: tuple | None = None
