@@ -22,7 +22,6 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
@@ -32,6 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from damon_ros.inputs import InputError, JointStateReader, goal_problem
 from damon_ros.nodes.common import (
     ProblemLog,
+    TopicReader,
     declare,
     print_help,
     run,
@@ -103,12 +103,9 @@ class PlannerNode(Node):
         self.pub_path = self.create_publisher(Path, "/damon/planned_path", 10)
         self.pub_graph = self.create_publisher(MarkerArray, "/damon/graph_markers", 1)
         self.pub_status = self.create_publisher(DiagnosticArray, "/damon/planner_status", 10)
-        # raw: at 1 kHz, deserialising every joint state would cost the planner a good part
-        # of a core; one state per `joint_state_period_s` is all it needs
-        self.create_subscription(JointState, "/joint_states", self._on_joint_state_raw, 10,
-                                 callback_group=sensors, raw=True)
-        self._joint_state_period = p["joint_state_period_s"]
-        self._joint_state_next = 0.0
+        self.joint_states = TopicReader(self, JointState, "/joint_states",
+                                        p["joint_state_period_s"], self._on_joint_state,
+                                        suffix="joint_states")
         self.create_subscription(MarkerArray, "/damon/obstacles", self._on_obstacles,
                                  qos_profile_sensor_data, callback_group=planning)
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
@@ -142,7 +139,7 @@ class PlannerNode(Node):
             ("monitor_rate_hz", 20.0, "fixed-rate path re-check (Hz)", 0.5, 1000.0),
             ("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
              "(0 = off, for a setup without perception)", 0.0, 60.0),
-            ("joint_state_period_s", 0.005, "joint states used at most this often (s)", 0.0,
+            ("joint_state_period_s", 0.005, "joint states are taken every this many s", 0.001,
              1.0),
             ("joint_state_timeout_s", 0.5, "max joint-state age to plan from (s)", 0.001, 60.0),
             ("time_budget_s", 0.5, "route search budget (s)", 0.001, 10.0),
@@ -156,13 +153,6 @@ class PlannerNode(Node):
     # ---- inputs -----------------------------------------------------------------------
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
-
-    def _on_joint_state_raw(self, data: bytes) -> None:
-        now = time.monotonic()
-        if now < self._joint_state_next:
-            return
-        self._joint_state_next = now + self._joint_state_period
-        self._on_joint_state(deserialize_message(data, JointState))
 
     def _on_joint_state(self, msg: JointState) -> None:
         resets = self.joint_reader.clock_resets
@@ -336,6 +326,10 @@ class PlannerNode(Node):
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = sec_to_stamp(self._now())
         self.pub_status.publish(msg)
+
+    def on_shutdown(self) -> None:
+        """Called by `common.run`: stop the joint-state reader thread."""
+        self.joint_states.close()
 
     # ---- services ---------------------------------------------------------------------
     def _on_plan_service(self, request: GetPlan.Request, response: GetPlan.Response):

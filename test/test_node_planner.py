@@ -1,0 +1,354 @@
+"""planner in the closed loop over real DDS: bad input, stale perception, dead nodes.
+
+mock_panda, controller and planner run as their own processes from their ``config/*.yaml``;
+this test is the perception: it publishes one far-away obstacle marker at 20 Hz (and
+stops, to make perception stale), and it is the user: goals on ``goal_pose``. Every bad
+message must cost exactly one clear log line (no traceback) in each node that reads it,
+move nothing, and leave the node running. A killed node, restarted, must rejoin the others
+without their restart.
+
+The planner here reads every joint state (``joint_state_period_s`` 0; by default it samples
+them) so that one bad message is sure to reach it, mock_panda publishes at 250 Hz to keep
+that cheap, and the arm moves at 0.3 of its velocity limits so that motions last long
+enough to be interrupted.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rosutil
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+from visualization_msgs.msg import Marker, MarkerArray
+
+from damon_ros.markers import shape_to_marker
+from damon_ros.robot import Robot
+from damon_ros.shapes import Shape
+
+CONFIG = rosutil.ROOT / "config"
+FRAME = "panda_link0"
+NAMES = [f"panda_joint{i}" for i in range(1, 8)]
+READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])  # mock_panda's start
+PERCEPTION_TIMEOUT_S = 0.5
+PARAMS = {
+    "mock_panda": {"rate_hz": 250.0},
+    "controller": {"planner_heartbeat_timeout_s": 1.0},
+    "planner": {"perception_timeout_s": PERCEPTION_TIMEOUT_S,
+                "velocity_scale": 0.3, "realtime_priority": 0},
+}
+FAR = Shape("sphere", (0.05,), [-0.6, 0.0, 0.3], name="far")  # never in the way
+ROBOT = Robot("fast")
+
+
+def tcp_goal(q) -> tuple[np.ndarray, np.ndarray]:
+    return ROBOT.tcp_pose(np.asarray(q, dtype=float))
+
+
+GOAL_A = tcp_goal(READY + [0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+GOAL_B = tcp_goal(READY + [-0.6, 0.15, 0.0, 0.2, 0.0, 0.0, 0.0])
+
+
+def goal_msg(position, quat, frame: str = FRAME) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header.frame_id = frame
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = (float(v) for v in position)
+    o.x, o.y, o.z, o.w = (float(v) for v in quat)
+    return msg
+
+
+@dataclass
+class Cell:
+    ros: rosutil.RosClient
+    env: dict
+    tmp: Path
+    procs: dict[str, subprocess.Popen]
+    states: rosutil.Recorder
+    trajectories: rosutil.Recorder
+    status: rosutil.Recorder
+    goal_pub: object
+    state_pub: object
+    marker_pub: object
+    obstacles: list = field(default_factory=lambda: [FAR])
+    feeding: bool = True
+
+    def feed(self) -> None:
+        """The perception: every obstacle in ``obstacles`` as an ADD marker, stamped now."""
+        if not self.feeding:
+            return
+        now = time.time()
+        self.marker_pub.publish(MarkerArray(markers=[
+            shape_to_marker(s, "test", k, FRAME, now, 0.3, (1.0, 0.0, 0.0, 1.0))
+            for k, s in enumerate(self.obstacles)]))
+
+    def lines(self, node: str, needle: str) -> list[str]:
+        return rosutil.log_lines(self.procs[node], needle)
+
+    def q(self) -> np.ndarray:
+        return np.array(self.states.last.position)
+
+    def at(self, goal, tolerance: float = 0.01) -> bool:
+        position, _ = tcp_goal(self.q())
+        still = np.max(np.abs(self.states.last.velocity)) < 0.01
+        return still and float(np.linalg.norm(position - goal[0])) < tolerance
+
+    def reach(self, goal, timeout_s: float = 25.0) -> bool:
+        self.goal_pub.publish(goal_msg(*goal))
+        return self.ros.spin_until(lambda: self.at(goal), timeout_s)
+
+    def moving(self) -> bool:
+        return np.max(np.abs(self.states.last.velocity)) > 0.05
+
+    def settle(self, timeout_s: float = 5.0) -> bool:
+        return self.ros.spin_until(lambda: not self.moving() and len(self.states) > 0,
+                                   timeout_s)
+
+    def start(self, node: str) -> subprocess.Popen:
+        proc = rosutil.start_node(node, PARAMS[node], self.env, self.tmp / f"{node}.log",
+                                  params_file=CONFIG / f"{node}.yaml")
+        self.procs[node] = proc
+        return proc
+
+    def alive(self) -> bool:
+        return all(p.poll() is None for p in self.procs.values())
+
+    def logs(self) -> str:
+        return "".join(f"\n--- {n} log ---\n{rosutil.read_log(p)[-3000:]}"
+                       for n, p in self.procs.items())
+
+
+def planner_ready(cell: Cell, timeout_s: float = 60.0) -> bool:
+    return cell.ros.spin_until(lambda: bool(cell.lines("planner", "planner ready")), timeout_s)
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    domain = rosutil.next_domain_id(__file__)
+    tmp = tmp_path_factory.mktemp("planner_cell")
+    env = rosutil.node_env(domain, tmp)
+    procs: dict[str, subprocess.Popen] = {}
+    try:
+        with rosutil.RosClient(domain) as ros:
+            c = Cell(ros, env, tmp, procs,
+                     ros.record(JointState, "/joint_states"),
+                     ros.record(JointTrajectory, "/damon/joint_trajectory"),
+                     ros.record(DiagnosticArray, "/damon/planner_status"),
+                     ros.publisher(PoseStamped, "goal_pose"),
+                     ros.publisher(JointState, "/joint_states"),
+                     ros.publisher(MarkerArray, "/damon/obstacles"))
+            ros.node.create_timer(0.05, c.feed)
+            for node in ("mock_panda", "controller", "planner"):
+                c.start(node)
+            assert planner_ready(c), c.logs()
+            assert ros.spin_until(lambda: len(c.states) > 10 and len(c.status) > 2, 20.0), \
+                c.logs()
+            assert ros.wait_for_subscribers(c.goal_pub, 1, 10.0), c.logs()
+            yield c
+    finally:
+        results = {n: rosutil.stop_node(p) for n, p in procs.items()}
+    for name, (code, log) in results.items():
+        assert code == 0, f"{name} exited with {code}:\n{log[-3000:]}"
+        assert "Traceback" not in log, f"{name}:\n{log[-3000:]}"
+
+
+def _one_new_line(cell: Cell, node: str, needle: str, before: int, timeout_s: float = 3.0):
+    """Wait for one more ``needle`` line in ``node``'s log, then make sure no second comes."""
+    cell.ros.spin_until(lambda: len(cell.lines(node, needle)) > before, timeout_s)
+    cell.ros.spin_for(0.2)
+    lines = cell.lines(node, needle)
+    assert len(lines) == before + 1, cell.logs()
+    return lines[-1]
+
+
+@pytest.mark.parametrize(("case", "words"), [
+    ("nan", "pose holds NaN or inf"),
+    ("inf", "pose holds NaN or inf"),
+    ("zero quaternion", "not a unit quaternion (norm 0.0000)"),
+    ("non-unit quaternion", "not a unit quaternion (norm 2.0000)"),
+    ("frame", "frame_id 'camera_link' is not the base frame 'panda_link0'"),
+    ("unreachable", "goal refused"),
+    ("inside an obstacle", "goal refused"),
+])
+def test_a_bad_goal_is_refused_with_one_line_and_nothing_moves(cell: Cell, case, words):
+    assert cell.settle()
+    position, quat = GOAL_A
+    frame = FRAME
+    if case == "nan":
+        position = [math.nan, 0.0, 0.4]
+    elif case == "inf":
+        quat = [math.inf, 0.0, 0.0, 1.0]
+    elif case == "zero quaternion":
+        quat = [0.0, 0.0, 0.0, 0.0]
+    elif case == "non-unit quaternion":
+        quat = 2.0 * np.asarray(quat)
+    elif case == "frame":
+        frame = "camera_link"
+    elif case == "unreachable":
+        position = [1.6, 0.0, 0.5]
+    else:  # a ball sits on the goal
+        cell.obstacles.append(Shape("sphere", (0.08,), position, name="on_goal"))
+        cell.ros.spin_for(0.3)
+    before = len(cell.lines("planner", "goal refused"))
+    trajectories = len(cell.trajectories)
+    q0 = cell.q()
+    try:
+        cell.goal_pub.publish(goal_msg(position, quat, frame))
+        line = _one_new_line(cell, "planner", "goal refused", before, timeout_s=5.0)
+    finally:
+        cell.obstacles[1:] = []
+    print(f"\n{case}: {line.split('] ', 1)[-1]}")
+    assert words in line
+    assert len(cell.trajectories) == trajectories  # nothing was sent to the controller
+    assert np.max(np.abs(cell.q() - q0)) < 1e-3
+    n = len(cell.status)
+    assert cell.ros.spin_until(lambda: len(cell.status) > n + 1, 2.0)  # still alive
+    assert cell.alive()
+
+
+def _bad_joint_state(cell: Cell, case: str) -> JointState:
+    last = cell.states.last
+    msg = JointState(name=list(last.name), position=list(last.position))
+    msg.header.stamp = last.header.stamp
+    if case == "missing joint":
+        msg.name, msg.position = msg.name[:6], msg.position[:6]
+    elif case == "short positions":
+        msg.position = msg.position[:5]
+    elif case == "nan":
+        msg.position[2] = math.nan
+    elif case == "stamp backwards":
+        msg.header.stamp.sec -= 1 if msg.header.stamp.nanosec < 500_000_000 else 0
+        msg.header.stamp.nanosec = (msg.header.stamp.nanosec - 500_000_000) % 1_000_000_000
+    elif case == "reordered":  # valid: the same state, joints in another order
+        msg.name, msg.position = msg.name[::-1], msg.position[::-1]
+    return msg
+
+
+@pytest.mark.parametrize(("case", "words"), [
+    ("missing joint", "lacks ['panda_joint7']"),
+    ("short positions", "7 names but 5 positions"),
+    ("nan", "NaN or inf positions"),
+    ("stamp backwards", "stamp goes backwards (500"),
+    ("reordered", None),
+])
+def test_a_bad_joint_state_is_ignored_by_planner_and_controller(cell: Cell, case, words):
+    assert cell.settle()
+    q0 = cell.q()
+    needle = "ignored joint state"
+    before = {n: len(cell.lines(n, needle)) for n in ("planner", "controller")}
+    cell.state_pub.publish(_bad_joint_state(cell, case))
+    if words is None:
+        cell.ros.spin_for(1.0)
+        assert {n: len(cell.lines(n, needle)) for n in before} == before, cell.logs()
+    else:
+        for node, count in before.items():
+            line = _one_new_line(cell, node, needle, count)
+            assert words in line, line
+        print(f"\n{case}: {line.split('] ', 1)[-1]}")
+    cell.ros.spin_for(0.3)
+    assert np.max(np.abs(cell.q() - q0)) < 1e-3
+    assert cell.alive()
+
+
+@pytest.mark.parametrize(("case", "words"), [
+    ("nan", "position [0.3, nan, 0.8] is not finite"),
+    ("absurd size", "scale [50.0, 50.0, 50.0] must be > 0 and <= 3.0 m"),
+    ("unknown type", "TEXT_VIEW_FACING"),
+])
+def test_a_bad_marker_is_refused_with_one_line(cell: Cell, case, words):
+    marker = shape_to_marker(Shape("sphere", (0.05,), [0.3, 0.5, 0.8]), "bad", 7, FRAME,
+                             time.time(), 0.3, (1.0, 0.0, 0.0, 1.0))
+    if case == "nan":
+        marker.pose.position.y = math.nan
+    elif case == "absurd size":
+        marker.scale.x = marker.scale.y = marker.scale.z = 50.0
+    else:
+        marker.type = Marker.TEXT_VIEW_FACING
+    needle = "obstacle marker refused"
+    before = len(cell.lines("planner", needle))
+    cell.marker_pub.publish(MarkerArray(markers=[marker]))
+    line = _one_new_line(cell, "planner", needle, before)
+    print(f"\n{case}: {line.split('] ', 1)[-1]}")
+    assert words in line
+    assert cell.alive()
+
+
+def test_a_new_goal_while_moving_replaces_the_old_one(cell: Cell):
+    assert cell.settle()
+    plans = len(cell.lines("planner", "plan:"))
+    cell.goal_pub.publish(goal_msg(*GOAL_A))
+    assert cell.ros.spin_until(cell.moving, 10.0), cell.logs()
+    assert cell.reach(GOAL_B), cell.logs()
+    assert len(cell.lines("planner", "plan:")) == plans + 2
+    assert cell.alive()
+
+
+def test_stale_perception_stops_the_arm_and_it_resumes_when_data_returns(cell: Cell):
+    assert cell.settle()
+    start = cell.q()
+    stops = len(cell.lines("planner", "stopping the arm: obstacle data is"))
+    cell.goal_pub.publish(goal_msg(*GOAL_A))
+    assert cell.ros.spin_until(cell.moving, 10.0), cell.logs()
+    cell.feeding = False
+    silent = time.monotonic()
+    try:
+        assert cell.ros.spin_until(
+            lambda: len(cell.lines("planner", "stopping the arm: obstacle data is")) > stops,
+            5.0), cell.logs()
+        noticed = time.monotonic() - silent
+        assert cell.ros.spin_until(lambda: not cell.moving(), 3.0), cell.logs()
+        stopped_at = cell.q()
+        cell.ros.spin_for(1.0)
+        assert np.max(np.abs(cell.q() - stopped_at)) < 0.01  # it stays stopped
+        assert not cell.at(GOAL_A, 0.02)  # short of the goal
+        assert np.max(np.abs(stopped_at - start)) > 0.01  # after having moved
+    finally:
+        cell.feeding = True
+    print(f"\nperception silent: stop logged {1e3 * noticed:.0f} ms later "
+          f"(timeout {1e3 * PERCEPTION_TIMEOUT_S:.0f} ms)")
+    assert PERCEPTION_TIMEOUT_S - 0.06 < noticed < PERCEPTION_TIMEOUT_S + 1.0
+    assert cell.ros.spin_until(lambda: cell.at(GOAL_A), 25.0), cell.logs()  # resumed
+
+
+def _kill(cell: Cell, node: str) -> None:
+    proc = cell.procs[node]
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=5.0)
+    cell.procs[node] = None  # type: ignore[assignment] - replaced by the restart
+
+
+def test_a_killed_node_restarted_rejoins_without_restarting_the_others(cell: Cell):
+    assert cell.settle()
+    others = {n: p.pid for n, p in cell.procs.items()}
+    # controller: mock_panda stops the joints when commands stop, then follows the new one
+    _kill(cell, "controller")
+    assert cell.ros.spin_until(
+        lambda: bool(cell.lines("mock_panda", "no joint command")), 3.0), cell.logs()
+    cell.start("controller")
+    assert cell.reach(GOAL_B), cell.logs()
+    # planner: the controller goes on holding; the restarted planner plans again
+    _kill(cell, "planner")
+    cell.start("planner")
+    assert planner_ready(cell), cell.logs()
+    assert cell.reach(GOAL_A), cell.logs()
+    # mock_panda (the arm): the controller sees stale states, brakes, then holds the new arm
+    stale = len(cell.lines("controller", "joint states stale"))
+    _kill(cell, "mock_panda")
+    assert cell.ros.spin_until(
+        lambda: len(cell.lines("controller", "joint states stale")) > stale, 3.0), cell.logs()
+    cell.start("mock_panda")
+    assert cell.ros.spin_until(
+        lambda: bool(cell.lines("controller", "joint states are back")), 20.0), cell.logs()
+    assert cell.reach(GOAL_B), cell.logs()
+    assert cell.alive()
+    for node in ("controller", "planner", "mock_panda"):
+        assert cell.procs[node].pid != others[node]
