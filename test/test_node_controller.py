@@ -193,22 +193,40 @@ def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
     assert "accepted trajectory" in rosutil.read_log(arm.controller)
 
 
-@pytest.mark.parametrize("case", ["unknown joint", "times", "nan", "limits"])
+EXPECTED = {"unknown joint": "panda_joint8", "duplicate joint": "repeat",
+            "times": "strictly increasing", "nan": "NaN", "limits": "outside",
+            "velocity": "rad/s", "short point": "every point needs 7 positions",
+            "ended": "ends in the past"}
+
+
+@pytest.mark.parametrize("case", list(EXPECTED))
 def test_rejects_a_malformed_trajectory_and_stays_still(arm: Arm, case: str):
     assert arm.settle()
     q0 = arm.q()
     target = q0 + 0.2
     times, rows, names = [0.5, 1.0], np.array([q0 + 0.1, target]), list(NAMES)
+    velocities = None
     if case == "unknown joint":
         names[6] = "panda_joint8"
+    elif case == "duplicate joint":
+        names[6] = names[0]
     elif case == "times":
         times = [1.0, 1.0]
     elif case == "nan":
         rows[1, 3] = np.nan
-    else:
+    elif case == "limits":
         rows[1, 3] = LIMITS.upper[3] + 0.5
+    elif case == "velocity":
+        velocities = np.zeros((2, 7))
+        velocities[0, 2] = 1.5 * LIMITS.velocity[2]
+    msg = trajectory(times, rows, velocities, names=names)
+    if case == "short point":
+        msg.points[1].positions = msg.points[1].positions[:6]
+    elif case == "ended":  # stamped to start 10 s ago: it would have ended 9 s ago
+        stamp = arm.ros.node.get_clock().now().nanoseconds - 10_000_000_000
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
     before = len(rosutil.log_lines(arm.controller, "rejected trajectory"))
-    arm.trajectories.publish(trajectory(times, rows, names=names))
+    arm.trajectories.publish(msg)
     arm.ros.spin_until(
         lambda: len(rosutil.log_lines(arm.controller, "rejected trajectory")) > before, 3.0)
     arm.ros.spin_for(0.3)
@@ -216,9 +234,7 @@ def test_rejects_a_malformed_trajectory_and_stays_still(arm: Arm, case: str):
     assert len(lines) == before + 1, arm.logs()
     assert np.max(np.abs(arm.q() - q0)) < 1e-4  # the arm did not move
     assert np.max(np.abs(arm.commands.last.data)) < 1e-3
-    expected = {"unknown joint": "panda_joint8", "times": "strictly increasing",
-                "nan": "NaN", "limits": "outside"}[case]
-    assert expected in lines[-1], lines[-1]
+    assert EXPECTED[case] in lines[-1], lines[-1]
 
 
 def test_empty_trajectory_stops_and_holds(arm: Arm):

@@ -308,8 +308,9 @@ def check_malformed_image_is_logged_once(g: Graph) -> None:
 
 
 def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
-    """The test is the camera: stamps jump back 1000 s (a simulator reset), then a frame
-    with no depth at all; each gives one log line and tracking goes on."""
+    """The test is the camera: frames before any camera_info, a depth image of the wrong
+    size, stamps that jump back 1000 s (a simulator reset), then a frame with no depth at
+    all; each gives one log line and tracking goes on."""
     domain = next_domain_id(__file__)
     camera = load_camera()
     rgb, depth = render(camera, scene_at(load_scenario(SCENARIOS / "B-001.yaml"), 0.0))
@@ -335,10 +336,20 @@ def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
                            if markers_of(m, "green")
                            and stamp_seconds(m.markers[0].header.stamp) >= t - 1e-6)
 
+            def waiting_for_info() -> bool:  # frames before any camera_info (paced)
+                stamp = to_stamp(1999.0 + (time.monotonic() % 1.0))
+                pubs[COLOR].publish(mock_camera.image_message(rgb, "rgb8", stamp, "cam"))
+                ros.spin_for(1 / 30)
+                return bool(log_lines(trk, "no camera_info"))
+
+            assert ros.spin_until(waiting_for_info, 10.0), read_log(trk)
             for k in range(10):  # paced like a camera: best-effort bursts may be dropped
                 send(2000.0 + k / 30, depth)
                 ros.spin_for(1 / 30)
             assert ros.spin_until(lambda: tracked_after(2000.0) >= 3, 10.0), read_log(trk)
+            for k in range(3):  # a depth image of another size than camera_info's
+                send(2001.0 + k / 30, depth[::2, ::2].copy())
+            assert ros.spin_until(lambda: bool(log_lines(trk, "320x240 but")), 5.0)
             for k in range(10):
                 send(1000.0 + k / 30, depth)
                 ros.spin_for(1 / 30)
@@ -349,8 +360,9 @@ def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
             assert ros.spin_until(lambda: bool(log_lines(trk, "all zero")), 5.0)
     finally:
         _, log = stop_node(trk, timeout=3.0)
-    assert len([line for line in log.splitlines() if "jumped back" in line]) == 1
-    assert len([line for line in log.splitlines() if "all zero" in line]) == 1, log
+    for words in ("no camera_info", "320x240 but", "jumped back", "all zero"):
+        assert len([line for line in log.splitlines() if words in line]) == 1, (words, log)
+    assert "Traceback" not in log
 
 
 def test_moving_sphere_matches_the_ground_truth_of_the_same_stamp(tmp_path):
