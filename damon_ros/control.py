@@ -372,19 +372,26 @@ class TrajectoryFollower:
         q = np.asarray(q_measured, dtype=float)
         if q.shape != (self.n,):
             raise ValueError(f"measured positions must be {self.n} values, got shape {q.shape}")
-        dt = 1.0 / self.rate_hz if self._t_last is None else t - self._t_last
+        cycle = 1.0 / self.rate_hz
+        dt = cycle if self._t_last is None else t - self._t_last
         if dt <= 0.0:
             return self._u.copy()  # same or earlier instant: nothing new to say
         self._t_last = t
+        # The PID works in the time that passed; the command is shaped for one cycle of the
+        # arm whatever passed: a Franka applies one command per 1 ms cycle and checks the
+        # acceleration and jerk implied by consecutive commands over that cycle. Shaped for
+        # the measured (jittered) interval, a late tick asked a fixed-cycle arm for up to
+        # 1.48x its acceleration and 2.3x its jerk limit (mock_panda's limit monitor, camera
+        # demo on the loaded 2-core machine); for a late tick this is only slower.
         if not np.isfinite(q).all():
-            return self._fault(dt)
+            return self._fault(cycle)
         self._resolve_pending(t, q)
         q_d, qd_d, qdd_d = self._desired_state(t)
         target, integral = self._pid(q_d - q, qd_d, dt, q)
-        self._u, self._a = self.shaper.shape(target, self._u, self._a, dt)
+        self._u, self._a = self.shaper.shape(target, self._u, self._a, cycle)
         # Anti-windup: integrate only where the arm is given what the PID asked for — not
         # clipped, and not more than a step of full acceleration behind (rate-limited).
-        free = np.abs(self._u - target) <= self.shaper.amax * dt
+        free = np.abs(self._u - target) <= self.shaper.amax * cycle
         self._integral = np.where(free, integral, self._integral)
         self._q_last = q.copy()
         self._desired = (q_d, qd_d, qdd_d)
@@ -421,7 +428,7 @@ class TrajectoryFollower:
         self._e_prev = self._error = e
         return target, np.where(raw == target, integral, self._integral)
 
-    def _fault(self, dt: float) -> np.ndarray:
+    def _fault(self, cycle: float) -> np.ndarray:
         self.last_fault = "measured position holds NaN or inf: trajectory aborted, holding"
         self._spline, self._pending = None, None
         if self._q_last is not None:
@@ -431,7 +438,7 @@ class TrajectoryFollower:
         self._integral[:] = 0.0
         self._e_prev = None
         self._error = np.full(self.n, np.nan)
-        self._u, self._a = self.shaper.shape(np.zeros(self.n), self._u, self._a, dt)
+        self._u, self._a = self.shaper.shape(np.zeros(self.n), self._u, self._a, cycle)
         return self._u.copy()
 
     # -- state out

@@ -499,7 +499,15 @@ class Planner:
     def path_threatened(self, q_now: np.ndarray, remaining: np.ndarray,
                         obstacles) -> tuple[bool, str]:
         """Is the rest of the path (from ``q_now`` through ``remaining`` waypoints) no longer
-        certified free against the current obstacles? Returns (threatened, why)."""
+        certified free against the current obstacles? Returns (threatened, why).
+
+        ``remaining[0]`` is the point of the path nearest the arm, so the first two segments
+        (the step back onto the path and the rest of the segment the arm is on) leave the
+        current state: they are held to the start margin, exactly as a re-route from here
+        would hold its first segment. With the full margin there, an arm that started
+        closer than 2λ to an obstacle would find each fresh re-route "threatened" at once
+        and halt and re-route again at every check (seen in the camera demo at 40 Hz).
+        """
         scene = Scene.of(obstacles)
         if not scene.now:
             return False, ""
@@ -507,7 +515,7 @@ class Planner:
         points = np.vstack([q_now[None], np.asarray(remaining, float).reshape(-1, 7)])
         query = _Query(self, q_now, q_now, scene)
         for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
-            if not query.segment_certified(a, b, first=i == 0, last=i == len(points) - 2):
+            if not query.segment_certified(a, b, first=i <= 1, last=i == len(points) - 2):
                 return True, "an obstacle blocks the remaining path"
         if self.risk is not None:
             p = float(self.risk(q_now, scene.now))

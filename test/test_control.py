@@ -26,20 +26,21 @@ DT = 1e-3
 
 
 class LimitWatch:
-    """Checks each command against the limits, as the arm would see the command stream."""
+    """Checks each command against the limits as a fixed-cycle arm sees the stream: one
+    command per cycle ``dt0``, whatever interval the controller's tick really took (``dt``
+    is accepted for the callers' convenience and ignored: that is the point)."""
 
     def __init__(self, lim=LIM, dt0: float = DT):
-        self.lim, self.u, self.a, self.first, self.dt0 = lim, np.zeros(7), np.zeros(7), True, dt0
+        self.lim, self.u, self.a, self.dt0 = lim, np.zeros(7), np.zeros(7), dt0
 
     def check(self, u: np.ndarray, dt: float) -> None:
-        dt = self.dt0 if self.first else dt
-        a = (u - self.u) / dt
-        jerk = (a - self.a) / dt
+        a = (u - self.u) / self.dt0
+        jerk = (a - self.a) / self.dt0
         assert np.all(np.isfinite(u)), u
         assert np.all(np.abs(u) <= self.lim.velocity * (1 + 1e-9)), u
         assert np.all(np.abs(a) <= self.lim.acceleration * (1 + 1e-6) + 1e-9), a
         assert np.all(np.abs(jerk) <= self.lim.jerk * (1 + 1e-6) + 1e-6), jerk
-        self.u, self.a, self.first = u, a, False
+        self.u, self.a = u, a
 
 
 def run(follower, t0, t1, q_of_t, watch=None, dt=DT):

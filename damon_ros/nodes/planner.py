@@ -197,8 +197,11 @@ class PlannerNode(Node):
             return None
         q = self._current_q()
         if q is None:
-            self.get_logger().error("goal refused: no fresh joint state (is /joint_states "
-                                    "published?)")
+            age = self._now() - self.q_stamp
+            self.get_logger().error(
+                "goal refused: no fresh joint state (" + (
+                    f"the last one is {age:.2f} s old, limit {self.joint_state_timeout:g} s)"
+                    if math.isfinite(age) else "none yet: is /joint_states published?)"))
             return None
         o = msg.pose.orientation
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
