@@ -370,9 +370,6 @@ def _spin(
         if rclpy.ok():
             raise
     finally:
-        # Let callbacks still running on executor threads finish before their node goes:
-        # destroyed under them, they fail with "cannot use Destroyable" on the way out.
-        executor.shutdown(timeout_sec=2.0)
         if node is not None:
             shutdown_hook = getattr(node, "on_shutdown", None)
             if shutdown_hook is not None:
