@@ -26,7 +26,12 @@ hull of a cube around every sphere.
 replace the obstacle with that ``(ns, id)``, DELETE removes it, DELETEALL removes all of
 them or those of one ``ns``; ``lifetime`` counted from the receive time, 0 = forever) and
 estimates each obstacle's velocity from successive positions, since a marker has no field
-for it. No rclpy here: only message classes, so the planner core can use it untouched.
+for it. One departure from rviz, for safety: an obstacle outlives its lifetime for as long
+as no newer marker array has arrived. Silence is a gap in perception (a stalled tracker, a
+busy executor), not evidence that the obstacle left; forgetting it there let the planner
+route the arm through a box it had seen 0.5 s before (camera demo, D-001). The gap itself
+is the perception timeout's to handle (`last_update`). No rclpy here: only message classes,
+so the planner core can use it untouched.
 """
 
 from __future__ import annotations
@@ -339,6 +344,7 @@ class ObstacleTable:
         self.frame_id = frame_id
         self.velocity_window_s = float(velocity_window_s)
         self._entries: dict[tuple[str, int], _Entry] = {}
+        self.last_update = -math.inf  # receive time of the last array that said anything valid
 
     def __len__(self) -> int:
         return sum(1 for e in self._entries.values() if e.obstacle is not None)
@@ -352,11 +358,14 @@ class ObstacleTable:
         if not math.isfinite(now):
             raise ValueError(f"now {now} must be a finite time")
         errors = []
+        markers = list(markers)
         for marker in markers:
             try:
                 self._apply_one(marker, float(now))
             except ValueError as exc:
                 errors.append(str(exc))
+        if len(errors) < len(markers) or not markers:  # an empty array says "nothing there"
+            self.last_update = float(now)
         return errors
 
     def _apply_one(self, marker: Marker, now: float) -> None:
@@ -383,9 +392,10 @@ class ObstacleTable:
         entry.obstacle = TrackedObstacle(key[0], key[1], shape, velocity, stamp, now, expires)
 
     def obstacles(self, now: float) -> list[TrackedObstacle]:
-        """Live obstacles at ``now`` (expired ones are dropped for good), sorted by key."""
-        self._entries = {k: e for k, e in self._entries.items()
-                         if e.obstacle is not None and e.obstacle.expires > now}
+        """Live obstacles at ``now``, sorted by key. An expired one is dropped for good, but
+        only once a newer array arrived without it (see the module doc)."""
+        self._entries = {k: e for k, e in self._entries.items() if e.obstacle is not None and (
+            e.obstacle.expires > now or e.obstacle.received >= self.last_update)}
         return [self._entries[k].obstacle for k in sorted(self._entries)]
 
     def shapes(self, now: float) -> list[Shape]:

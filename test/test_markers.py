@@ -177,9 +177,26 @@ def test_table_adds_replaces_and_expires_by_receive_time():
     assert [(o.ns, o.id) for o in live] == [("green", 0), ("red", 1)]
     assert live[0].shape.position[0] == pytest.approx(0.6)
     assert live[0].expires == pytest.approx(100.6) and math.isinf(live[1].expires)
+    # Without newer data nothing is forgotten: silence is a perception gap, not absence.
+    assert len(table.obstacles(100.61)) == 2
+    table.apply([ball(0.8, "blue", 2, lifetime_s=0.0)], now=100.3)  # newer data
     # Expiry counts from the receive time (100.1 + 0.5), not from the stamp.
-    assert [(o.ns, o.id) for o in table.obstacles(100.61)] == [("red", 1)]
-    assert len(table.shapes(1e6)) == 1  # lifetime 0: forever
+    assert [(o.ns, o.id) for o in table.obstacles(100.59)] == [
+        ("blue", 2), ("green", 0), ("red", 1)]
+    assert [(o.ns, o.id) for o in table.obstacles(100.61)] == [("blue", 2), ("red", 1)]
+    assert len(table.shapes(1e6)) == 2  # lifetime 0: forever
+    assert table.last_update == 100.3
+
+
+def test_only_valid_data_counts_as_an_update():
+    table = ObstacleTable(FRAME)
+    table.apply([ball(0.5)], now=1.0)
+    bad = ball(0.6, "red", 1)
+    bad.scale.x = math.nan
+    assert len(table.apply([bad], now=2.0)) == 1  # refused: perception said nothing valid
+    assert table.last_update == 1.0 and len(table.obstacles(5.0)) == 1
+    table.apply([], now=3.0)  # an empty array: "nothing there", so the old ball may go
+    assert table.last_update == 3.0 and table.obstacles(5.0) == []
 
 
 def test_table_delete_and_delete_all():

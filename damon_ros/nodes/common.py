@@ -26,6 +26,7 @@ from rclpy.executors import (
     SingleThreadedExecutor,
 )
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
 
 
 def declare(
@@ -285,8 +286,10 @@ class TopicReader:
     Why: measured on this project's 2-core machine, the planner's MultiThreadedExecutor
     delivered 12 of mock_panda's 1,000 joint states per second to its callback, with gaps
     up to 1 s (the executor rebuilds its wait set in Python for every callback it runs; a
-    plain 4-thread executor with one subscription managed ~80/s). A planner that plans
-    from a joint state 0.5 s old starts its certified path where the arm no longer is.
+    plain 4-thread executor with one subscription managed ~80/s), and left the tracker's
+    30 Hz obstacle arrays waiting > 1 s about once a second behind its planning timer. A
+    planner that plans from a joint state 0.5 s old starts its certified path where the
+    arm no longer is; one whose obstacle data is late stops the arm for nothing.
     This reader's subscription lives on a helper node that no executor spins
     (``<node>_<suffix>``); a `FixedRateLoop` drains it every ``period_s`` and hands each
     message, in order, to ``on_message`` (so a bad one is still seen and logged).
@@ -294,11 +297,11 @@ class TopicReader:
 
     def __init__(self, node: Node, msg_type, topic: str, period_s: float,
                  on_message: Callable[[object], None], suffix: str = "reader",
-                 depth: int = 50):
+                 qos: QoSProfile | int = 50):
         self._node = rclpy.create_node(f"{node.get_name()}_{suffix}", context=node.context,
                                        namespace=node.get_namespace(), enable_rosout=False,
                                        start_parameter_services=False)
-        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, depth)
+        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos)
         self._on_message = on_message
         self._loop = FixedRateLoop(1.0 / period_s, self._drain, f"{suffix}_loop",
                                    on_error=lambda exc: node.get_logger().error(

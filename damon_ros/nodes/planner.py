@@ -2,8 +2,10 @@
 
 Thin adapter over :class:`damon_ros.runtime.ReactivePlanner`: it parses parameters and
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
-decides. Planning runs in its own mutually exclusive callback group, so joint states and
-obstacle markers keep arriving while a route is computed (MultiThreadedExecutor).
+decides. Joint states and obstacle arrays are taken by reader threads of their own
+(`common.TopicReader`: the executor let both go stale), so they keep arriving while a route
+is computed; an obstacle array is decided on at once in its reader thread, goals, services
+and the fixed-rate path check in the executor, one at a time (``deciding`` lock).
 """
 
 from __future__ import annotations
@@ -91,10 +93,12 @@ class PlannerNode(Node):
         self.joint_reader = JointStateReader(self.limits.names)
         # one line per kind of bad input at once, repeats of a kind once per 5 s with a count
         self.problems = ProblemLog(self.get_logger().warning, 5.0)
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # the latest joint state
+        # the runtime and the obstacle table: obstacle arrays arrive on a reader thread,
+        # goals, services and the monitor tick on the executor's
+        self.deciding = threading.RLock()
         self.q: np.ndarray | None = None
         self.q_stamp = -math.inf
-        self.obstacle_received = -math.inf
         self.last_event = "idle"
 
         sensors = ReentrantCallbackGroup()
@@ -106,8 +110,9 @@ class PlannerNode(Node):
         self.joint_states = TopicReader(self, JointState, "/joint_states",
                                         p["joint_state_period_s"], self._on_joint_state,
                                         suffix="joint_states")
-        self.create_subscription(MarkerArray, "/damon/obstacles", self._on_obstacles,
-                                 qos_profile_sensor_data, callback_group=planning)
+        self.obstacle_reader = TopicReader(self, MarkerArray, "/damon/obstacles", 0.002,
+                                           self._on_obstacles, suffix="obstacles",
+                                           qos=qos_profile_sensor_data)
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
                                  callback_group=planning)
         self.create_service(GetPlan, "~/plan", self._on_plan_service, callback_group=planning)
@@ -177,12 +182,9 @@ class PlannerNode(Node):
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
         received = time.perf_counter()
-        now = self._now()
-        errors = self.table.apply(msg.markers, now)
-        for error in errors:
-            self.problems.report(f"obstacle marker refused: {error}")
-        if len(errors) < len(msg.markers) or not msg.markers:
-            self.obstacle_received = now  # perception is alive only if it said something valid
+        with self.deciding:
+            for error in self.table.apply(msg.markers, self._now()):
+                self.problems.report(f"obstacle marker refused: {error}")
         self._step(received)
 
     def _on_goal(self, msg: PoseStamped) -> None:
@@ -206,10 +208,11 @@ class PlannerNode(Node):
         o = msg.pose.orientation
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
                                   msg.pose.position.z]), np.array([o.x, o.y, o.z, o.w]))
-        now = self._now()
-        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else math.inf
-        event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age)
-        self._act(event, received, "goal")
+        with self.deciding:
+            now = self._now()
+            age = now - self.table.last_update  # inf before any valid obstacle data
+            event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age)
+            self._act(event, received, "goal")
         return event
 
     # ---- the loop ---------------------------------------------------------------------
@@ -220,10 +223,11 @@ class PlannerNode(Node):
         q = self._current_q()
         if q is None or self.runtime.state in ("idle", "reached"):
             return
-        now = self._now()
-        age = now - self.obstacle_received if math.isfinite(self.obstacle_received) else math.inf
-        event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age)
-        self._act(event, received, "update")
+        with self.deciding:
+            now = self._now()
+            age = now - self.table.last_update  # inf before any valid obstacle data
+            event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age)
+            self._act(event, received, "update")
 
     def _act(self, event, received: float, cause: str) -> None:
         if event is None:
@@ -331,8 +335,9 @@ class PlannerNode(Node):
         self.pub_status.publish(msg)
 
     def on_shutdown(self) -> None:
-        """Called by `common.run`: stop the joint-state reader thread."""
+        """Called by `common.run`: stop the reader threads."""
         self.joint_states.close()
+        self.obstacle_reader.close()
 
     # ---- services ---------------------------------------------------------------------
     def _on_plan_service(self, request: GetPlan.Request, response: GetPlan.Response):
@@ -345,7 +350,9 @@ class PlannerNode(Node):
         return response
 
     def _on_stop_service(self, request: Trigger.Request, response: Trigger.Response):
-        self._act(self.runtime.stop("stop requested on ~/stop"), time.perf_counter(), "stop")
+        with self.deciding:
+            self._act(self.runtime.stop("stop requested on ~/stop"), time.perf_counter(),
+                      "stop")
         response.success, response.message = True, "arm stopped; goal cleared"
         return response
 
