@@ -125,6 +125,46 @@ def test_no_route_means_no_path_and_a_reason(planner, monkeypatch):
     assert "no certified route" in result.reason and "holding" in result.reason
 
 
+def _local(shape: Shape, p: np.ndarray) -> np.ndarray:
+    return shape.rotation().T @ (p - shape.position)
+
+
+@pytest.mark.parametrize("kind", ["box", "cylinder", "points"])
+def test_swept_shapes_keep_their_kind_and_contain_their_motion(kind):
+    q = np.array([0.2, -0.1, 0.4, 0.9]) / np.linalg.norm([0.2, -0.1, 0.4, 0.9])
+    size = {"box": (0.2, 0.3, 0.45), "cylinder": (0.05, 0.3), "points": ()}[kind]
+    corners = np.array([[x, y, z] for x in (-0.1, 0.1) for y in (-0.15, 0.15)
+                        for z in (-0.2, 0.2)])
+    shape = Shape(kind, size, [0.5, 0.0, 0.4], q,
+                  points=corners if kind == "points" else None)
+    v = np.array([0.03, -0.02, 0.3])
+    s = swept(shape, v, 1.0)
+    assert s.kind == kind
+    if kind == "points":  # the hull of both copies: the moved corners are among its points
+        moved = [s.position + s.rotation() @ p for p in s.points]
+        for c in corners:
+            p0 = shape.position + shape.rotation() @ c
+            assert min(np.linalg.norm(p0 - m) for m in moved) < 1e-12
+            assert min(np.linalg.norm(p0 + v - m) for m in moved) < 1e-12
+        return
+    half = 0.5 * np.asarray(shape.size)
+    if kind == "box":
+        extremes = [shape.position + shape.rotation() @ (c / np.array([0.1, 0.15, 0.2]) * half)
+                    for c in corners]
+    else:  # rim points of both end caps
+        r, h = shape.size[0], 0.5 * shape.size[1]
+        extremes = [shape.position + shape.rotation() @ np.array([r * np.cos(a), r * np.sin(a), z])
+                    for a in np.linspace(0, 2 * np.pi, 12) for z in (-h, h)]
+    for t in np.linspace(0.0, 1.0, 5):
+        for p in extremes:
+            x = _local(s, p + t * v)
+            if kind == "box":
+                assert np.all(np.abs(x) <= 0.5 * np.asarray(s.size) + 1e-12)
+            else:
+                assert np.hypot(x[0], x[1]) <= s.size[0] + 1e-12
+                assert abs(x[2]) <= 0.5 * s.size[1] + 1e-12
+
+
 def test_swept_sphere_contains_its_motion():
     ball = Shape("sphere", (0.05,), [0.5, 0.0, 0.5])
     s = swept(ball, np.array([0.4, 0.0, 0.0]), 0.5)
