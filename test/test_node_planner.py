@@ -128,7 +128,16 @@ class Cell:
 
 
 def planner_ready(cell: Cell, timeout_s: float = 60.0) -> bool:
-    return cell.ros.spin_until(lambda: bool(cell.lines("planner", "planner ready")), timeout_s)
+    """The planner is up and has a fresh joint state (a goal sent before is refused):
+    after a start, or after mock_panda's, the planner's reader must discover the states."""
+    def fresh_state() -> bool:
+        if not cell.lines("planner", "planner ready") or not len(cell.status):
+            return False
+        values = {kv.key: kv.value for kv in cell.status.last.status[0].values}
+        return float(values.get("joint_state_age_s", "inf")) < 0.1
+
+    n = len(cell.status)  # a status published after this call
+    return cell.ros.spin_until(lambda: len(cell.status) > n and fresh_state(), timeout_s)
 
 
 @pytest.fixture(scope="module")
@@ -348,6 +357,7 @@ def test_a_killed_node_restarted_rejoins_without_restarting_the_others(cell: Cel
     cell.start("mock_panda")
     assert cell.ros.spin_until(
         lambda: bool(cell.lines("controller", "joint states are back")), 20.0), cell.logs()
+    assert planner_ready(cell, 20.0), cell.logs()
     assert cell.reach(GOAL_B), cell.logs()
     assert cell.alive()
     for node in ("controller", "planner", "mock_panda"):

@@ -328,6 +328,9 @@ class PlannerNode(Node):
             "holds": stats.holds, "escapes": stats.escapes, "obstacles": len(self.table),
             "collision_probability": f"{rt.last_probability:.3f}",
             "replan_latency_p50_ms": f"{np.median(latencies):.2f}" if latencies else "nan",
+            # inf until the first one: a goal sent before then is refused
+            "joint_state_age_s": f"{self._now() - self.q_stamp:.3f}",
+            "obstacle_data_age_s": f"{self._now() - self.table.last_update:.3f}",
         }
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
