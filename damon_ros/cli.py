@@ -28,6 +28,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "bench": ("damon_ros.bench", "main",
               "closed-loop benchmark vs OMPL on scenarios and MotionBenchMaker problems"),
     "report": ("damon_ros.report", "main", "write docs/BENCHMARKS.md from bench result files"),
+    "soak": ("damon_ros.soak", "main",
+             "all nodes for N minutes: throughput, latency, memory, contacts, limits"),
     "bench-robot": (
         "damon_ros.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",

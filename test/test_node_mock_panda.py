@@ -90,6 +90,7 @@ def graph(tmp_path_factory):
         code, log = rosutil.stop_node(proc, first_signal=signal.SIGINT)
     assert code == 0, log[-4000:]
     assert "loop timing" in log
+    assert "limit monitor:" in log  # the totals line (limit_check is on in the config)
 
 
 def test_publishes_joint_states_at_rate_with_names(graph: Graph):
@@ -141,6 +142,27 @@ def test_clamps_commands_to_the_velocity_and_acceleration_limits(graph: Graph):
     assert np.max(qd) > 0.95 * vmax  # it did run at the limit
     rise = t[np.argmax(qd > 2.0)] - t[np.argmax(qd > 0.01)]
     assert rise >= 0.95 * (2.0 - 0.01) / amax, rise  # no faster than the acceleration limit
+
+
+def test_reports_limit_violations_and_late_commands(graph: Graph):
+    """/damon/sim/limits: a 10 rad/s command is a velocity violation; 200 Hz are late."""
+    limits = graph.ros.record(DiagnosticArray, "/damon/sim/limits")
+    assert graph.ros.spin_until(lambda: len(limits) > 0, 3.0), _failure(graph.proc)
+    assert graph.settle()
+    graph.stream([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 0.1)
+    graph.stream(np.zeros(7), 0.1)
+
+    def counts() -> dict[str, str]:
+        return {kv.key: kv.value for kv in limits.last.status[0].values}
+
+    assert graph.ros.spin_until(lambda: int(counts()["velocity"]) > 0, 3.0), counts()
+    status = limits.last.status[0]
+    assert status.level == DiagnosticStatus.ERROR and "velocity" in status.message
+    values = counts()
+    assert int(values["late"]) > 0 and float(values["max_gap_ms"]) > 1.5
+    assert int(values["acceleration"]) == 0  # never computed across a gap
+    lines = rosutil.log_lines(graph.proc, "first velocity violation")
+    assert len(lines) == 1 and "joint 1" in lines[0], lines
 
 
 def test_stops_when_commands_go_stale(graph: Graph):

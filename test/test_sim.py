@@ -10,7 +10,7 @@ import pytest
 from damon_ros.control import TrajectoryFollower
 from damon_ros.limits import joint_limits
 from damon_ros.scenario import load_public_scenarios
-from damon_ros.sim import ArmSim
+from damon_ros.sim import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 from damon_ros.trajectory import time_parameterize
 
 LIM = joint_limits("panda")
@@ -130,10 +130,11 @@ def test_same_commands_give_identical_motion():
 
 # ----------------------------------------------------------------------------- closed loop
 
-def follow(path: np.ndarray, scale: float = 0.5, settle: float = 0.5):
+def follow(path: np.ndarray, scale: float = 0.5, settle: float = 0.5,
+           monitor: LimitMonitor | None = None):
     """Run follower + sim at 1 kHz along the time-parameterised path; returns traces."""
     traj = time_parameterize(path, LIM, scale, scale, scale)
-    sim = ArmSim(LIM, path[0])
+    sim = ArmSim(LIM, path[0], monitor=monitor)
     follower = TrajectoryFollower(LIM)
     follower.set_trajectory(traj.times, traj.positions, traj.velocities, traj.accelerations,
                             start_time=0.0)
@@ -180,3 +181,103 @@ def test_closed_loop_full_speed_move_still_converges_within_limits():
     _, _, q, errors, commands, qds, _ = follow(path, scale=1.0, settle=1.0)
     assert np.max(np.abs(q - path[-1])) < 1e-3
     assert_within_limits(commands, qds)
+
+
+# ----------------------------------------------------------------------------- limit monitor
+
+def test_limit_monitor_counts_nothing_in_a_shaped_command_stream():
+    """The controller's own output at full limits, 1 kHz, closed loop: zero counts."""
+    monitor = LimitMonitor(LIM, DT)
+    path = np.array([HOME, HOME + np.array([1.0, 0.5, -1.0, 0.8, 1.0, -0.8, 1.0])])
+    *_, steps = follow(path, scale=1.0, settle=0.5, monitor=monitor)
+    assert monitor.commands == round(steps / DT)
+    assert monitor.counts == dict.fromkeys((*LIMIT_KINDS, LATE), 0), monitor.summary()
+    assert monitor.peak["acceleration"] > 0.9  # it did run close to the limits
+    assert not monitor.take_reports()
+
+
+def test_limit_monitor_counts_a_step_beyond_the_acceleration_limit():
+    monitor = LimitMonitor(LIM, DT)
+    step = np.zeros(7)
+    step[1] = 1.1 * LIM.acceleration[1] * DT  # 10 % more than one period allows
+    for k, u in enumerate((np.zeros(7), np.zeros(7), step, step)):
+        monitor.command(u, k * DT)
+    assert monitor.counts["acceleration"] == 1
+    assert monitor.counts["jerk"] == 2  # into the step and out of it
+    assert monitor.counts["velocity"] == monitor.counts[LATE] == 0
+    reports = monitor.take_reports()
+    assert any("acceleration" in r and "joint 2" in r and "1.1000 x" in r for r in reports)
+    assert monitor.take_reports() == []  # each kind is handed out once
+    monitor.command(np.zeros(7), 4 * DT)
+    assert monitor.counts["acceleration"] == 2 and monitor.take_reports() == []
+    assert "2 acceleration" in monitor.summary()
+
+
+def test_limit_monitor_counts_velocity_and_position_limits():
+    monitor = LimitMonitor(LIM, DT)
+    monitor.command(np.r_[1.01 * LIM.velocity[0], np.zeros(6)], 0.0)
+    assert monitor.counts["velocity"] == 1
+    start = HOME.copy()
+    start[0] = LIM.upper[0] - 0.01
+    sim = ArmSim(LIM, start, monitor=LimitMonitor(LIM, DT))
+    cmd = np.r_[1.0, np.zeros(6)]
+    drive(sim, cmd, 0.0, 0.2)  # runs into the upper limit and stays there
+    assert sim.monitor.counts["position"] == 1  # one entry, however long it stays
+    drive(sim, -cmd, 0.2, 0.3)
+    drive(sim, cmd, 0.3, 0.6)
+    assert sim.monitor.counts["position"] == 2
+    assert "joint 1 reached its position limit" in sim.monitor.take_reports()[0]
+
+
+def test_limit_monitor_skips_a_gap_and_counts_it_as_late():
+    """A late message is not a controller violation: no acceleration across the gap."""
+    monitor = LimitMonitor(LIM, DT)
+    far = np.r_[0.5, np.zeros(6)]  # 0.5 rad/s in one step would be 500 rad/s^2
+    monitor.command(np.zeros(7), 0.0)
+    monitor.command(np.zeros(7), 1.4 * DT)  # within 1.5 periods: checked
+    monitor.command(far, 3.0 * DT)  # 1.6 periods later: late
+    monitor.command(far, 4.0 * DT)
+    assert monitor.counts[LATE] == 1
+    assert monitor.violations == 0, monitor.summary()
+    assert abs(monitor.max_gap - 1.6 * DT) < 1e-12
+
+
+def test_limit_monitor_sees_a_late_send_hidden_by_a_stalled_receiver():
+    """Sent 5 periods apart (a late controller tick) but taken 0.1 ms apart: late, not a
+    500 rad/s^2 acceleration; on-time sends that arrive together are still checked."""
+    monitor = LimitMonitor(LIM, DT)
+    far = np.r_[0.5, np.zeros(6)]
+    monitor.command(np.zeros(7), 10.0, sent=100.0)
+    monitor.command(far, 10.0001, sent=100.005)
+    assert monitor.counts[LATE] == 1 and monitor.violations == 0
+    monitor.command(np.zeros(7), 10.0002, sent=100.006)  # catches up on the stall: skipped
+    assert monitor.counts[LATE] == 1 and monitor.violations == 0
+    monitor.command(far, 10.0003, sent=100.007)
+    assert monitor.counts[LATE] == 1 and monitor.counts["acceleration"] == 1
+    assert monitor.jitter["acceleration"] == 0  # 500 rad/s^2 at any spacing
+
+
+def test_limit_monitor_tells_tick_jitter_from_a_shaping_error():
+    """A step shaped for a 1.25 ms tick: within the limit at the sender's spacing, beyond
+    it at the robot's 1 ms cycle; counted, and counted as jitter."""
+    monitor = LimitMonitor(LIM, DT)
+    step = np.r_[1.2 * LIM.acceleration[0] * DT, np.zeros(6)]
+    monitor.command(np.zeros(7), 0.0, sent=50.0)
+    monitor.command(step, 1.25 * DT, sent=50.0 + 1.25 * DT)
+    assert monitor.counts["acceleration"] == 1 and monitor.jitter["acceleration"] == 1
+    monitor.command(2 * step, 2.25 * DT, sent=50.0 + 2.25 * DT)  # 1 ms: shaping error
+    assert monitor.counts["acceleration"] == 2 and monitor.jitter["acceleration"] == 1
+    assert "within the limits at the sender's own tick spacing: 1 acceleration" in \
+        monitor.summary()
+
+
+def test_nan_commands_never_reach_the_limit_monitor():
+    sim = ArmSim(LIM, HOME, monitor=LimitMonitor(LIM, DT))
+    assert sim.command(np.zeros(7), 0.0) is None
+    assert "NaN" in sim.command(np.full(7, np.nan), DT)
+    assert "7 velocities" in sim.command(np.zeros(3), 2 * DT)
+    assert sim.monitor.commands == 1 and sim.monitor.violations == 0
+    with pytest.raises(ValueError, match="finite"):
+        sim.monitor.command(np.r_[np.inf, np.zeros(6)], 3 * DT)
+    with pytest.raises(ValueError, match="period must be a positive"):
+        LimitMonitor(LIM, 0.0)

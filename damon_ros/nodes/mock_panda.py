@@ -17,6 +17,16 @@ scenario time is published on ``/damon/sim/contact`` (``diagnostic_msgs/Diagnost
 level ERROR on contact) at ``contact_rate_hz``, computed in ~0.2 ms slices inside the loop
 (see `ContactMonitor` for why not in a timer). Scenario time 0 is ``scenario_start_time_s``
 (ROS time, seconds), or this node's start when that is 0.
+
+Limit monitor (``limit_check``, on by default): a real Franka stops with a reflex when a
+command breaks its velocity, acceleration or jerk limits or a joint reaches a position
+limit; the mock arm only clamps. `damon_ros.sim.LimitMonitor` counts every accepted command
+that would have tripped such a reflex (acceleration and jerk from consecutive commands at
+the nominal ``1 / rate_hz`` period; commands sent or received after a gap of more than 1.5
+periods are counted as late instead) and every entry of a joint into a position limit. The counts
+go out on ``/damon/sim/limits`` (``diagnostic_msgs/DiagnosticArray``) once a second from
+the loop (level ERROR on any violation, WARN on late commands only); the first violation of
+each kind is logged once with its numbers, and the shutdown log line holds the totals.
 """
 
 from __future__ import annotations
@@ -37,13 +47,14 @@ from std_msgs.msg import Float64MultiArray
 from damon_ros.limits import PROFILES, JointLimits, joint_limits
 from damon_ros.nodes import common
 from damon_ros.scenario import Scenario, load_scenario
-from damon_ros.sim import ArmSim
+from damon_ros.sim import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 NAME = "mock_panda"
 READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 COMMAND_TOPIC = "/damon/joint_commands"
 STATE_TOPIC = "/joint_states"
 CONTACT_TOPIC = "/damon/sim/contact"
+LIMITS_TOPIC = "/damon/sim/limits"
 WARN_EVERY_S = 5.0  # a stream of bad commands gives one warning line per this many seconds
 
 PARAMETERS = (
@@ -59,6 +70,7 @@ PARAMETERS = (
     ("contact_rate_hz", "rounds of the contact check over all obstacles per second (Hz)"),
     ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
     ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+    ("limit_check", "count commands a real Franka would refuse; 1 Hz on /damon/sim/limits"),
 )
 
 
@@ -138,8 +150,10 @@ class MockPanda(Node):
         self.names = common.joint_names(p["joints"], p["joint_prefix"])
         scenario = load_scenario(p["scenario"]) if p["scenario"] else None
         q0 = start_positions(p["initial_positions"], scenario)
+        self._monitor = (LimitMonitor(limits, 1.0 / p["rate_hz"]) if p["limit_check"]
+                         else None)
         self._sim = ArmSim(limits, q0, tau=p["actuator_tau_s"],
-                           command_timeout=p["command_timeout_s"])
+                           command_timeout=p["command_timeout_s"], monitor=self._monitor)
         self._lock = threading.Lock()  # the loop thread steps, the executor commands
         self._last_command: float | None = None  # monotonic time of the last good command
         self._commanding = False  # inside an episode of fresh commands
@@ -149,6 +163,9 @@ class MockPanda(Node):
         self._pub = self.create_publisher(JointState, STATE_TOPIC, 10)
         self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, 10)
         self._setup_contact_check(scenario)
+        self._limits_pub = (self.create_publisher(DiagnosticArray, LIMITS_TOPIC, 10)
+                            if self._monitor is not None else None)
+        self._limits_every = max(1, round(p["rate_hz"]))  # once a second
         self._loop = common.FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
                                           on_error=self._on_loop_error)
         refused = common.set_realtime_priority(p["realtime_priority"])
@@ -180,6 +197,7 @@ class MockPanda(Node):
             "scenario_start_time_s": d(self, "scenario_start_time_s", 0.0, PARAMETERS[10][1]),
             "realtime_priority": d(self, "realtime_priority", 20, PARAMETERS[11][1],
                                    low=0, high=99),
+            "limit_check": d(self, "limit_check", True, PARAMETERS[12][1]),
         }
 
     def _setup_contact_check(self, scenario: Scenario | None) -> None:
@@ -200,12 +218,18 @@ class MockPanda(Node):
 
     # -- executor side
 
-    def _on_command(self, msg: Float64MultiArray) -> None:
+    def _on_command(self, msg: Float64MultiArray, info) -> None:
+        """``info`` (rclpy MessageInfo): the publisher's send time, for the limit monitor."""
         t = time.monotonic()
+        sent = info["source_timestamp"] * 1e-9 if info and info.get("source_timestamp") \
+            else None
         with self._lock:
-            reason = self._sim.command(msg.data, t)
+            reason = self._sim.command(msg.data, t, sent)
             if reason is None:
                 self._last_command = t
+            reports = self._monitor.take_reports() if self._monitor is not None else ()
+        for report in reports:
+            self.get_logger().error(report)
         if reason is not None:
             self.get_logger().warning(f"rejected joint command: {reason}",
                                       throttle_duration_sec=WARN_EVERY_S)
@@ -221,10 +245,18 @@ class MockPanda(Node):
         with self._lock:
             q, qd = self._sim.step(dt, t)
             last = self._last_command
+            reports = self._monitor.take_reports() if self._monitor is not None else ()
+            limits = (self._limits_message()
+                      if self._monitor is not None and self._ticks % self._limits_every == 0
+                      else None)
+        for report in reports:
+            self.get_logger().error(report)
         self._watch_commands(t, last)
         msg = JointState(name=self.names, position=q.tolist(), velocity=qd.tolist())
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub.publish(msg)
+        if limits is not None:
+            self._limits_pub.publish(limits)
         self._ticks += 1
         if self._contact is not None and self._ticks % self._contact_every == 0:
             self._check_contact(q)
@@ -239,6 +271,28 @@ class MockPanda(Node):
         self._contact_pub.publish(msg)
         if status.level == DiagnosticStatus.ERROR:
             self.get_logger().error(status.message, throttle_duration_sec=1.0)
+
+    def _limits_message(self) -> DiagnosticArray:
+        """The limit monitor's counts so far (called under the lock, once a second)."""
+        m = self._monitor
+        if m.violations:
+            level, message = DiagnosticStatus.ERROR, "limit violations: " + ", ".join(
+                f"{m.counts[k]} {k}" for k in LIMIT_KINDS if m.counts[k])
+        elif m.counts[LATE]:
+            level, message = DiagnosticStatus.WARN, f"{m.counts[LATE]} late commands"
+        else:
+            level, message = DiagnosticStatus.OK, "within limits"
+        values = [KeyValue(key="commands", value=str(m.commands))]
+        values += [KeyValue(key=k, value=str(v)) for k, v in m.counts.items()]
+        values += [KeyValue(key=f"{k}_jitter", value=str(v)) for k, v in m.jitter.items()]
+        values += [KeyValue(key=f"peak_{k}_fraction", value=f"{v:.4f}")
+                   for k, v in m.peak.items()]
+        values.append(KeyValue(key="max_gap_ms", value=f"{1e3 * m.max_gap:.3f}"))
+        msg = DiagnosticArray(status=[DiagnosticStatus(
+            level=level, name=f"{NAME}: limits", message=message, hardware_id=NAME,
+            values=values)])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        return msg
 
     def _watch_commands(self, t: float, last: float | None) -> None:
         """Log once per episode when the command stream stops (ArmSim then brakes)."""
@@ -259,7 +313,11 @@ class MockPanda(Node):
         """Called by `common.run_single_threaded`: stop the loop and report its timing."""
         self._loop.stop()
         # ROS may already be shut down (rosout gone): a logger outside the node prints only.
-        rclpy.logging.get_logger(f"{NAME}.shutdown").info(self._loop.summary())
+        log = rclpy.logging.get_logger(f"{NAME}.shutdown")
+        log.info(self._loop.summary())
+        if self._monitor is not None:
+            with self._lock:
+                log.info(self._monitor.summary())
 
 
 def main(args: Sequence[str] | None = None) -> int:
