@@ -56,6 +56,7 @@ where the meshes touch; after the containment growth and before this margin, fas
 is at most −1.3 mm (median −28 mm) where apart and fast ≤ −2.5 mm where the meshes touch:
 "fast > 0 ⇒ mesh > 0" held on every sample, with this margin as reserve."""
 SURFACE_STEP = 0.004
+IK_LIMIT_MARGIN = 0.005  # rad: IK solutions keep this far inside the joint limits
 """Largest edge (m) of the triangles the mesh surfaces are cut into to check that the fast
 model's spheres contain them; every surface point is within ``SURFACE_STEP / √3`` (2.3 mm)
 of a checked point, which :data:`FAST_MODEL_MARGIN` covers."""
@@ -634,8 +635,10 @@ class Robot:
         steps; a seed is dropped as soon as its error stops shrinking (local minimum or a
         limit in the way)."""
         model, data, fid = self.model, self.data, self.tcp_id
-        lower, upper = self.limits.lower, self.limits.upper
-        q, best, stalled = seed.copy(), math.inf, 0
+        # clamped a little inside the limits: an IK goal on a limit is a motion that ends
+        # on it, and a Franka stops with a reflex there (mock_panda's monitor counted one)
+        lower, upper = self.limits.lower + IK_LIMIT_MARGIN, self.limits.upper - IK_LIMIT_MARGIN
+        q, best, stalled = np.clip(seed, lower, upper), math.inf, 0
         for _ in range(iterations):
             pin.forwardKinematics(model, data, q)
             error_se3 = pin.updateFramePlacement(model, data, fid).actInv(target)

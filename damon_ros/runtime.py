@@ -159,12 +159,13 @@ class ReactivePlanner:
                 return None
             if self.pending_goal is not None:
                 return self.set_goal(q_now, self.pending_goal, obstacles, perception_age_s)
-            if t - self.last_retry >= self.config.retry_period_s:
+            # escape before the retry: a failing route search takes up to the time budget,
+            # and in the soak a falling sphere reached holding arms during those searches
+            event = self._escape_if_threatened(q_now, shapes)
+            if event is None and t - self.last_retry >= self.config.retry_period_s:
                 self.last_retry = t
                 event = self._reroute(q_now, shapes, "route found again; resuming")
-                if event is not None:
-                    return event
-            return self._escape_if_threatened(q_now, shapes)
+            return event
         if self._stalled(t, q_now):
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
                                  "controller may have stopped it); re-planning from here")

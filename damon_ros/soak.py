@@ -40,7 +40,7 @@ import yaml
 
 DRIFT_BOUND = 1.10  # last window / first window, p99 re-route latency and each node's RSS
 DRIFT_MIN_WINDOWS = 3  # fewer windows: too short to tell drift from warm-up
-DRIFT_MIN_SAMPLES = 50  # re-routes per window below which its p99 is not compared
+DRIFT_MIN_SAMPLES = 30  # re-routes per window below which its p99 is not compared
 NODES = ("mock_panda", "controller", "planner", "mock_camera", "tracker")
 START_SCENARIO = "D-001"  # its start state and its static box
 # Goals right, left, right, left of the box, so that every move crosses in front of it. Each

@@ -55,7 +55,7 @@ COMMAND_TOPIC = "/damon/joint_commands"
 STATE_TOPIC = "/joint_states"
 CONTACT_TOPIC = "/damon/sim/contact"
 LIMITS_TOPIC = "/damon/sim/limits"
-WARN_EVERY_S = 5.0  # a stream of bad commands gives one warning line per this many seconds
+WARN_EVERY_S = 5.0  # a stream of bad commands of one kind: one line per this many seconds
 
 PARAMETERS = (
     ("joints", "joint names in command/state order; empty: <joint_prefix>joint1..7"),
@@ -155,6 +155,7 @@ class MockPanda(Node):
         self._sim = ArmSim(limits, q0, tau=p["actuator_tau_s"],
                            command_timeout=p["command_timeout_s"], monitor=self._monitor)
         self._lock = threading.Lock()  # the loop thread steps, the executor commands
+        self._problems = common.ProblemLog(self.get_logger().warning, WARN_EVERY_S)
         self._last_command: float | None = None  # monotonic time of the last good command
         self._commanding = False  # inside an episode of fresh commands
         self._last_step: float | None = None
@@ -231,8 +232,7 @@ class MockPanda(Node):
         for report in reports:
             self.get_logger().error(report)
         if reason is not None:
-            self.get_logger().warning(f"rejected joint command: {reason}",
-                                      throttle_duration_sec=WARN_EVERY_S)
+            self._problems.report(f"rejected joint command: {reason}")
 
     # -- loop thread
 

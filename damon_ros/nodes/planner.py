@@ -147,7 +147,7 @@ class PlannerNode(Node):
             ("joint_state_period_s", 0.005, "joint states are taken every this many s", 0.001,
              1.0),
             ("joint_state_timeout_s", 0.5, "max joint-state age to plan from (s)", 0.001, 60.0),
-            ("time_budget_s", 0.5, "route search budget (s)", 0.001, 10.0),
+            ("time_budget_s", 0.25, "route search budget (s)", 0.001, 10.0),
             ("realtime_priority", 15, "SCHED_FIFO priority (0 = normal): above the camera and "
              "tracker, below the 1 kHz control loops", 0, 99),
         ]:
