@@ -152,7 +152,8 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
         if t >= next_camera:
             next_camera += config.camera_period
             if t >= busy_until:  # the planner takes the newest frame once it is free
-                busy_until = decide(runtime.update(t, sim.q, perception.observe(t)), t)
+                busy_until = decide(runtime.update(t, sim.q, perception.observe(t),
+                                                  qd_now=sim.qd), t)
         u = follower.update(t, sim.q)
         sim.command(u, t)
         t += config.control_dt

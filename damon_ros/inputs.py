@@ -84,6 +84,14 @@ class JointStateReader:
         self._check_stamp(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
         return q
 
+    def velocities(self, msg: JointState) -> np.ndarray | None:
+        """The velocities of ``names`` of a message `read` accepted, or None when it carries
+        none usable (the field is optional in JointState)."""
+        if self._index is None or len(msg.velocity) != len(msg.name):
+            return None
+        qd = np.asarray(msg.velocity, dtype=float)[self._index]
+        return qd if np.all(np.isfinite(qd)) else None
+
     def _lookup(self, key: tuple[str, ...]) -> np.ndarray | None:
         if key != self._key:
             where = {n: k for k, n in enumerate(key)}

@@ -74,6 +74,12 @@ class PlannerConfig:
     exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
 
+MOVING_RAD_S = 0.05
+"""Joint speed above which a new route starts where the arm will stop (`_route_moving`)."""
+BRAKE_LATENCY_S = 0.03
+"""Coasting before braking starts: planning, DDS and a controller tick (measured 10-30 ms)."""
+
+
 @dataclass
 class PlanResult:
     """What a plan or re-plan produced. ``path`` rows are certified straight-line waypoints;
@@ -249,9 +255,10 @@ class Planner:
         return q_goal, ""
 
     # ---- planning -------------------------------------------------------------------
-    def plan(self, q_start: np.ndarray, goal, obstacles=()) -> PlanResult:
+    def plan(self, q_start: np.ndarray, goal, obstacles=(), qd_start=None) -> PlanResult:
         """Plan from ``q_start`` to a :class:`PoseGoal` or joint goal, certified against all
-        ``obstacles`` (shapes, or a :class:`Scene`); remembers the goal for :meth:`replan`."""
+        ``obstacles`` (shapes, or a :class:`Scene`); remembers the goal for :meth:`replan`.
+        ``qd_start``: the arm's joint velocities, when it is moving (see `_route_moving`)."""
         t0 = time.perf_counter()
         q_start = np.asarray(q_start, float)
         problem = self._check_start(q_start)
@@ -264,12 +271,12 @@ class Planner:
             self.goal_q = None
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
         self.goal_q = q_goal
-        result = self._route(q_start, q_goal, scene)
+        result = self._route_moving(q_start, qd_start, q_goal, scene)
         result.timing_ms["ik"] = 1e3 * (t_ik - t0)
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
-    def replan(self, q_now: np.ndarray, obstacles=()) -> PlanResult:
+    def replan(self, q_now: np.ndarray, obstacles=(), qd_now=None) -> PlanResult:
         """Re-route from the current state toward the goal of the last successful plan."""
         t0 = time.perf_counter()
         if self.goal_q is None:
@@ -278,8 +285,36 @@ class Planner:
         problem = self._check_start(q_now)
         if problem:
             return PlanResult(False, problem)
-        result = self._route(q_now, self.goal_q, Scene.of(obstacles))
+        result = self._route_moving(q_now, qd_now, self.goal_q, Scene.of(obstacles))
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return result
+
+    def braking_point(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Where a moving arm comes to rest when braked now at the full acceleration and jerk
+        limits (per joint, ramp-up of the deceleration included, plus BRAKE_LATENCY_S of
+        coasting), inside the position limits."""
+        v, a, j = np.abs(qd), self.limits.acceleration, self.limits.jerk
+        distance = v * v / (2.0 * a) + v * a / (2.0 * j) + v * BRAKE_LATENCY_S
+        return self.limits.clip(q + np.sign(qd) * distance)
+
+    def _route_moving(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
+        """`_route`, for an arm that may be moving. A trajectory starts at rest, so the
+        controller brakes the arm past ``q_start`` before it follows one: the route starts
+        where the arm stops, and the braking segment before it is certified too (first-
+        segment rules). Without that, a goal changed mid-motion sent the arm 0.1-0.2 rad
+        along its old direction, through space nobody had checked (a contact with a box in
+        the soak)."""
+        if qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S:
+            return self._route(q_start, q_goal, scene)
+        q_stop = self.braking_point(q_start, np.asarray(qd_start, float))
+        query = _Query(self, q_start, q_stop, scene)
+        if not query.segment_certified(q_start, q_stop, first=True):
+            return PlanResult(False, "braking from the current speed is not certified free; "
+                              "holding position", goal_q=q_goal)
+        result = self._route(q_stop, q_goal, scene)
+        if result.success:
+            result.path = np.vstack([q_start[None], result.path])
+            result.trajectory = self._time_parameterize(result.path)
         return result
 
     def _check_start(self, q: np.ndarray) -> str:

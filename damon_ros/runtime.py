@@ -111,9 +111,11 @@ class ReactivePlanner:
         return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles))
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
-                 perception_age_s: float = 0.0) -> Event:
+                 perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event:
         """Plan to a new goal (replacing any current one). Without fresh obstacle data the
-        goal waits (the arm holds) and is planned as soon as data arrives: never blind."""
+        goal waits (the arm holds) and is planned as soon as data arrives: never blind.
+        ``qd_now`` (joint velocities, optional): a moving arm's route starts where it stops
+        (`Planner.braking_point`)."""
         timeout = self.config.perception_timeout_s
         if timeout > 0 and perception_age_s > timeout:
             self.pending_goal = goal
@@ -122,7 +124,7 @@ class ReactivePlanner:
                               f"{perception_age_s:.1f} s, limit {timeout:.2f} s)")
         self.pending_goal = None
         t0 = time.perf_counter()
-        result = self.planner.plan(q_now, goal, self.scene(obstacles))
+        result = self.planner.plan(q_now, goal, self.scene(obstacles), qd_start=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)
@@ -142,7 +144,7 @@ class ReactivePlanner:
 
     def update(self, t: float, q_now: np.ndarray,
                obstacles: Sequence[tuple[Shape, np.ndarray]],
-               perception_age_s: float = 0.0) -> Event | None:
+               perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event | None:
         """Called on every obstacle update and at a fixed rate; returns an event or None."""
         if self.state in ("idle", "reached"):
             return None
@@ -158,17 +160,19 @@ class ReactivePlanner:
             if timeout > 0 and perception_age_s > timeout:
                 return None
             if self.pending_goal is not None:
-                return self.set_goal(q_now, self.pending_goal, obstacles, perception_age_s)
+                return self.set_goal(q_now, self.pending_goal, obstacles, perception_age_s,
+                                     qd_now)
             # escape before the retry: a failing route search takes up to the time budget,
             # and in the soak a falling sphere reached holding arms during those searches
             event = self._escape_if_threatened(q_now, shapes)
             if event is None and t - self.last_retry >= self.config.retry_period_s:
                 self.last_retry = t
-                event = self._reroute(q_now, shapes, "route found again; resuming")
+                event = self._reroute(q_now, shapes, "route found again; resuming", qd_now)
             return event
         if self._stalled(t, q_now):
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
-                                 "controller may have stopped it); re-planning from here")
+                                 "controller may have stopped it); re-planning from here",
+                                 qd_now)
         if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
             if np.max(np.abs(self.path[-1] - self.planner.goal_q)) > 1e-9:
                 self.state, self.last_retry = "holding", -math.inf  # an escape move ended
@@ -184,7 +188,7 @@ class ReactivePlanner:
             return None
         if self.on_threat is not None:
             self.on_threat(why)
-        return self._reroute(q_now, shapes, why)
+        return self._reroute(q_now, shapes, why, qd_now)
 
     def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene) -> Event | None:
         """While holding, move away from an obstacle that comes within the escape distance."""
@@ -203,9 +207,10 @@ class ReactivePlanner:
     def remaining_path(self) -> np.ndarray:
         return self.path[self.segment + 1:]
 
-    def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str) -> Event | None:
+    def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str,
+                 qd_now: np.ndarray | None = None) -> Event | None:
         t0 = time.perf_counter()
-        result = self.planner.replan(q_now, shapes)
+        result = self.planner.replan(q_now, shapes, qd_now=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         if not result.success:
             if self.state == "holding":

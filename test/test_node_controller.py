@@ -72,8 +72,14 @@ class Arm:
         return np.array(self.states.last.position)
 
     def settle(self, timeout_s: float = 3.0) -> bool:
-        return self.ros.spin_until(
-            lambda: np.max(np.abs(self.states.last.velocity)) < 1e-4, timeout_s)
+        """Still for the last 100 states (0.1 s): one slow state may be the turning point
+        of the overshoot when the arm brakes and comes back to the hold position."""
+        def still() -> bool:
+            recent = self.states.messages[-100:]
+            return len(recent) == 100 and max(
+                np.max(np.abs(m.velocity)) for m in recent) < 1e-4
+
+        return self.ros.spin_until(still, timeout_s)
 
     def first_command_below(self, t: float, speed: float) -> float | None:
         """When the controller published its first command with all |u| <= ``speed`` after

@@ -171,3 +171,22 @@ def test_swept_sphere_contains_its_motion():
     for t in np.linspace(0.0, 0.5, 6):
         centre = ball.position + t * np.array([0.4, 0.0, 0.0])
         assert np.linalg.norm(centre - s.position) + 0.05 <= s.size[0] + 1e-12
+
+
+def test_a_moving_arm_is_planned_from_where_it_stops(planner, robots):
+    scenario = next(s for s in load_public_scenarios() if s.name == "B-001")
+    q0, qd = scenario.start, np.array([1.5, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0])
+    q_stop = planner.braking_point(q0, qd)
+    lim = planner.limits
+    expected = qd**2 / (2 * lim.acceleration) + np.abs(qd) * lim.acceleration / (2 * lim.jerk)
+    np.testing.assert_allclose(np.abs(q_stop - q0), expected + np.abs(qd) * 0.03)
+    goal = scenario.goal.joints
+    moving = planner.plan(q0, goal, scenario.obstacles_at(0.0), qd_start=qd)
+    assert moving.success, moving.reason
+    np.testing.assert_allclose(moving.path[:2], [q0, q_stop])  # brake, then the route
+    assert moving.trajectory.positions[0] == pytest.approx(q0)
+    # an obstacle on the braking segment: no route may start there
+    fast, _ = robots
+    ball = Shape("sphere", (0.04,), fast.tcp_pose(0.5 * (q0 + q_stop))[0])
+    refused = planner.plan(q0, goal, [*scenario.obstacles_at(0.0), ball], qd_start=qd)
+    assert not refused.success and "braking" in refused.reason

@@ -28,6 +28,8 @@ from rclpy.executors import (
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
+from damon_ros.inputs import InputError, JointStateReader
+
 
 def declare(
     node: Node,
@@ -278,6 +280,21 @@ class FixedRateLoop:
             "late_fraction": float(np.mean(periods > late_s)),
             "missed": self.missed,
         }
+
+
+def read_joint_state(reader: JointStateReader, msg, problems: ProblemLog,
+                     log: Callable[[str], None]) -> np.ndarray | None:
+    """`JointStateReader.read` for a node: the positions, or None for a refused message,
+    which is reported (one line per kind); an accepted clock reset is logged."""
+    resets = reader.clock_resets
+    try:
+        q = reader.read(msg)
+    except InputError as exc:
+        problems.report(f"ignored joint state: {exc}")
+        return None
+    if reader.clock_resets != resets:
+        log("joint-state stamps jumped back (clock reset): accepted")
+    return q
 
 
 class TopicReader:

@@ -47,7 +47,7 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from damon_ros.control import PIDGains, TrajectoryFollower, reorder_points, validate_trajectory
-from damon_ros.inputs import InputError, JointStateReader
+from damon_ros.inputs import JointStateReader
 from damon_ros.limits import PROFILES, joint_limits
 from damon_ros.nodes import common
 from damon_ros.trajectory import METHODS
@@ -161,15 +161,9 @@ class Controller(Node):
 
     def _on_joint_state(self, msg: JointState) -> None:
         t = time.monotonic()
-        resets = self._reader.clock_resets
-        try:
-            q = self._reader.read(msg)
-        except InputError as exc:
-            # Not a measurement: ignored, so that a stream of them ends in the stale stop.
-            self._problems.report(f"ignored joint state: {exc}")
-            return
-        if self._reader.clock_resets != resets:
-            self.get_logger().info("joint-state stamps jumped back (clock reset): accepted")
+        q = common.read_joint_state(self._reader, msg, self._problems, self.get_logger().info)
+        if q is None:
+            return  # not a measurement: a stream of them ends in the stale stop
         with self._lock:
             self._q, self._q_time = q, t
 

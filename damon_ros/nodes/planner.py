@@ -30,12 +30,13 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.inputs import InputError, JointStateReader, goal_problem
+from damon_ros.inputs import JointStateReader, goal_problem
 from damon_ros.nodes.common import (
     ProblemLog,
     TopicReader,
     declare,
     print_help,
+    read_joint_state,
     run,
     sec_to_stamp,
     set_realtime_priority,
@@ -98,6 +99,7 @@ class PlannerNode(Node):
         # goals, services and the monitor tick on the executor's
         self.deciding = threading.RLock()
         self.q: np.ndarray | None = None
+        self.qd: np.ndarray | None = None
         self.q_stamp = -math.inf
         self.last_event = "idle"
 
@@ -160,22 +162,19 @@ class PlannerNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_joint_state(self, msg: JointState) -> None:
-        resets = self.joint_reader.clock_resets
-        try:
-            q = self.joint_reader.read(msg)
-        except InputError as exc:
-            self.problems.report(f"ignored joint state: {exc}")
+        q = read_joint_state(self.joint_reader, msg, self.problems, self.get_logger().info)
+        if q is None:
             return
-        if self.joint_reader.clock_resets != resets:
-            self.get_logger().info("joint-state stamps jumped back (clock reset): accepted")
+        qd = self.joint_reader.velocities(msg)
         with self.lock:
-            self.q, self.q_stamp = q, self._now()
+            self.q, self.qd, self.q_stamp = q, qd, self._now()
 
-    def _current_q(self) -> np.ndarray | None:
+    def _current_state(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(positions, velocities or None) of a fresh joint state; (None, None) if stale."""
         with self.lock:
             if self.q is None or self._now() - self.q_stamp > self.joint_state_timeout:
-                return None
-            return self.q.copy()
+                return None, None
+            return self.q.copy(), None if self.qd is None else self.qd.copy()
 
     def _obstacles(self, now: float) -> list:
         return [(o.shape, o.velocity) for o in self.table.obstacles(now)]
@@ -197,7 +196,7 @@ class PlannerNode(Node):
         if problem:
             self.get_logger().error(f"goal refused: {problem}")
             return None
-        q = self._current_q()
+        q, qd = self._current_state()
         if q is None:
             age = self._now() - self.q_stamp
             self.get_logger().error(
@@ -211,7 +210,8 @@ class PlannerNode(Node):
         with self.deciding:
             now = self._now()
             age = now - self.table.last_update  # inf before any valid obstacle data
-            event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age)
+            event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age,
+                                          qd_now=qd)
             self._act(event, received, "goal")
         return event
 
@@ -220,13 +220,14 @@ class PlannerNode(Node):
         self._step(time.perf_counter())
 
     def _step(self, received: float) -> None:
-        q = self._current_q()
+        q, qd = self._current_state()
         if q is None or self.runtime.state in ("idle", "reached"):
             return
         with self.deciding:
             now = self._now()
             age = now - self.table.last_update  # inf before any valid obstacle data
-            event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age)
+            event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age,
+                                        qd_now=qd)
             self._act(event, received, "update")
 
     def _act(self, event, received: float, cause: str) -> None:
