@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 # name -> (module, function taking argv and returning an exit code, one-line help)
@@ -55,6 +56,10 @@ def _usage_table() -> str:
     return "commands:\n" + "\n".join(rows)
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = _parser()
@@ -63,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         print("\n" + _usage_table())
         return 0
     ns = parser.parse_args(argv)
+    # SIGTERM ends a command like Ctrl-C, through its `finally` blocks: demo and soak stop
+    # their node processes there (killed outright, they left five nodes running)
+    signal.signal(signal.SIGTERM, _interrupt)
     module_name, function, _ = SUBCOMMANDS[ns.command]
     run = getattr(importlib.import_module(module_name), function)
     try:

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from damon_ros.graph import LatentGraph
 from damon_ros.limits import JointLimits
+from damon_ros.robot import IK_LIMIT_MARGIN
 from damon_ros.shapes import Shape
 
 
@@ -295,7 +296,10 @@ class Planner:
         coasting), inside the position limits."""
         v, a, j = np.abs(qd), self.limits.acceleration, self.limits.jerk
         distance = v * v / (2.0 * a) + v * a / (2.0 * j) + v * BRAKE_LATENCY_S
-        return self.limits.clip(q + np.sign(qd) * distance)
+        # inside the limits by IK's margin: a waypoint on a limit is a motion that ends on
+        # it (the controller brakes softly before a limit anyway; the soak hit joint 1's)
+        return np.clip(q + np.sign(qd) * distance, self.limits.lower + IK_LIMIT_MARGIN,
+                       self.limits.upper - IK_LIMIT_MARGIN)
 
     def _route_moving(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
         """`_route`, for an arm that may be moving. A trajectory starts at rest, so the
