@@ -309,30 +309,36 @@ class TopicReader:
     arm no longer is; one whose obstacle data is late stops the arm for nothing.
     This reader's subscription lives on a helper node that no executor spins
     (``<node>_<suffix>``); a `FixedRateLoop` drains it every ``period_s`` and hands each
-    message, in order, to ``on_message`` (so a bad one is still seen and logged).
+    message, in order, to ``on_message`` (so a bad one is still seen and logged), then calls
+    ``on_drained`` once: slow work belongs there, once per batch, so that the loop sleeps
+    between batches and other threads waiting on the caller's locks get their turn.
     """
 
     def __init__(self, node: Node, msg_type, topic: str, period_s: float,
                  on_message: Callable[[object], None], suffix: str = "reader",
-                 qos: QoSProfile | int = 50):
+                 qos: QoSProfile | int = 50, on_drained: Callable[[], None] | None = None):
         self._node = rclpy.create_node(f"{node.get_name()}_{suffix}", context=node.context,
                                        namespace=node.get_namespace(), enable_rosout=False,
                                        start_parameter_services=False)
         self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos)
         self._on_message = on_message
+        self._on_drained = on_drained
         self._loop = FixedRateLoop(1.0 / period_s, self._drain, f"{suffix}_loop",
                                    on_error=lambda exc: node.get_logger().error(
                                        f"{topic} reader stopped: {type(exc).__name__}: {exc}"))
         self._loop.start()
 
     def _drain(self, _t: float) -> None:
-        handle = self._sub.handle
+        handle, taken_any = self._sub.handle, False
         while True:
             with handle:
                 taken = handle.take_message(self._sub.msg_type, False)
             if taken is None:
-                return
+                break
+            taken_any = True
             self._on_message(taken[0])
+        if taken_any and self._on_drained is not None:
+            self._on_drained()
 
     def close(self) -> None:
         self._loop.stop()

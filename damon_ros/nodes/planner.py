@@ -4,8 +4,8 @@ Thin adapter over :class:`damon_ros.runtime.ReactivePlanner`: it parses paramete
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
 decides. Joint states and obstacle arrays are taken by reader threads of their own
 (`common.TopicReader`: the executor let both go stale), so they keep arriving while a route
-is computed; an obstacle array is decided on at once in its reader thread, goals, services
-and the fixed-rate path check in the executor, one at a time (``deciding`` lock).
+is computed; each batch of obstacle arrays is decided on at once in its reader thread,
+goals, services and the fixed-rate path check in the executor, one at a time (``deciding``).
 """
 
 from __future__ import annotations
@@ -112,9 +112,11 @@ class PlannerNode(Node):
         self.joint_states = TopicReader(self, JointState, "/joint_states",
                                         p["joint_state_period_s"], self._on_joint_state,
                                         suffix="joint_states")
+        self._obstacles_received: float | None = None  # first array of the pending batch
         self.obstacle_reader = TopicReader(self, MarkerArray, "/damon/obstacles", 0.002,
                                            self._on_obstacles, suffix="obstacles",
-                                           qos=qos_profile_sensor_data)
+                                           qos=qos_profile_sensor_data,
+                                           on_drained=self._on_obstacles_drained)
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
                                  callback_group=planning)
         self.create_service(GetPlan, "~/plan", self._on_plan_service, callback_group=planning)
@@ -180,10 +182,16 @@ class PlannerNode(Node):
         return [(o.shape, o.velocity) for o in self.table.obstacles(now)]
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
-        received = time.perf_counter()
+        if self._obstacles_received is None:
+            self._obstacles_received = time.perf_counter()
         with self.deciding:
             for error in self.table.apply(msg.markers, self._now()):
                 self.problems.report(f"obstacle marker refused: {error}")
+
+    def _on_obstacles_drained(self) -> None:
+        """One decision per batch of obstacle arrays (a decision in a holding arm may search
+        for the whole time budget; one per array starved goals of the lock: soak, 0/10)."""
+        received, self._obstacles_received = self._obstacles_received, None
         self._step(received)
 
     def _on_goal(self, msg: PoseStamped) -> None:
