@@ -22,7 +22,6 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import (
     Executor,
     ExternalShutdownException,
-    MultiThreadedExecutor,
     SingleThreadedExecutor,
 )
 from rclpy.node import Node
@@ -345,28 +344,17 @@ class TopicReader:
         self._node.destroy_node()
 
 
-def run(
-    node_factory: Callable[[], Node],
-    args: Sequence[str] | None = None,
-    threads: int = 4,
-) -> int:
-    """Spin a node on a multi-threaded executor until SIGINT/SIGTERM, then shut down cleanly.
-
-    A multi-threaded executor lets slow work (planning) run in its own callback group while
-    the callbacks that keep the arm safe keep running.
-    """
-    return _spin(node_factory, args, lambda: MultiThreadedExecutor(num_threads=threads))
-
-
 def run_single_threaded(
     node_factory: Callable[[], Node],
     args: Sequence[str] | None = None,
 ) -> int:
-    """`run` with a single-threaded executor, for nodes whose real work is in a `FixedRateLoop`.
+    """Spin a node on a single-threaded executor until SIGINT/SIGTERM, then shut down cleanly.
 
-    Measured on a 2-core machine, the loop thread of a 1 kHz node misses its 2 ms bound 5-10x
-    more often beside a multi-threaded executor, whose Python dispatch competes for the GIL;
-    the callbacks of such nodes only copy a message under a lock, so one thread serves them.
+    Every damon_ros node runs so; their real work is in threads of their own (`FixedRateLoop`,
+    `TopicReader`). Measured on a 2-core machine, the loop thread of a 1 kHz node misses its
+    2 ms bound 5-10x more often beside a multi-threaded executor, whose Python dispatch
+    competes for the GIL, and the planner's multi-threaded executor once ran no goal callback
+    for minutes while its main thread spun.
     """
     return _spin(node_factory, args, SingleThreadedExecutor)
 

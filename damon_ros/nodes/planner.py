@@ -5,7 +5,8 @@ messages, keeps the latest joint state and obstacle table, and publishes what th
 decides. Joint states and obstacle arrays are taken by reader threads of their own
 (`common.TopicReader`: the executor let both go stale), so they keep arriving while a route
 is computed; each batch of obstacle arrays is decided on at once in its reader thread,
-goals, services and the fixed-rate path check in the executor, one at a time (``deciding``).
+goals, services and the fixed-rate path check in the (single-threaded) executor, one at a
+time (``deciding``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped
 from nav_msgs.msg import Path
 from nav_msgs.srv import GetPlan
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -37,7 +37,7 @@ from damon_ros.nodes.common import (
     declare,
     print_help,
     read_joint_state,
-    run,
+    run_single_threaded,
     sec_to_stamp,
     set_realtime_priority,
 )
@@ -103,8 +103,6 @@ class PlannerNode(Node):
         self.q_stamp = -math.inf
         self.last_event = "idle"
 
-        sensors = ReentrantCallbackGroup()
-        planning = MutuallyExclusiveCallbackGroup()
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
         self.pub_path = self.create_publisher(Path, "/damon/planned_path", 10)
         self.pub_graph = self.create_publisher(MarkerArray, "/damon/graph_markers", 1)
@@ -117,12 +115,14 @@ class PlannerNode(Node):
                                            self._on_obstacles, suffix="obstacles",
                                            qos=qos_profile_sensor_data,
                                            on_drained=self._on_obstacles_drained)
-        self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10,
-                                 callback_group=planning)
-        self.create_service(GetPlan, "~/plan", self._on_plan_service, callback_group=planning)
-        self.create_service(Trigger, "~/stop", self._on_stop_service, callback_group=planning)
-        self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor, callback_group=planning)
-        self.create_timer(0.1, self._publish_status, callback_group=sensors)
+        # goals, services and both timers on one executor thread (`run_single_threaded`):
+        # a MultiThreadedExecutor here busy-spun its main thread and ran no goal callback
+        # for minutes while the obstacle reader held `deciding` for a route search (soak)
+        self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10)
+        self.create_service(GetPlan, "~/plan", self._on_plan_service)
+        self.create_service(Trigger, "~/stop", self._on_stop_service)
+        self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor)
+        self.create_timer(0.1, self._publish_status)
         refused = set_realtime_priority(p["realtime_priority"])
         if refused:
             self.get_logger().warning(refused)
@@ -347,7 +347,7 @@ class PlannerNode(Node):
         self.pub_status.publish(msg)
 
     def on_shutdown(self) -> None:
-        """Called by `common.run`: stop the reader threads."""
+        """Called by `common.run_single_threaded`: stop the reader threads."""
         self.joint_states.close()
         self.obstacle_reader.close()
 
@@ -378,7 +378,7 @@ def main(args=None) -> int:
     from damon_ros.model import ModelError
 
     try:
-        return run(PlannerNode, argv)
+        return run_single_threaded(PlannerNode, argv)
     except ModelError as exc:
         print(f"planner: cannot load the model: {exc}", file=sys.stderr)
         return 2
