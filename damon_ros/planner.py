@@ -296,9 +296,13 @@ class Planner:
         coasting), inside the position limits."""
         v, a, j = np.abs(qd), self.limits.acceleration, self.limits.jerk
         distance = v * v / (2.0 * a) + v * a / (2.0 * j) + v * BRAKE_LATENCY_S
-        # inside the limits by IK's margin: a waypoint on a limit is a motion that ends on
-        # it (the controller brakes softly before a limit anyway; the soak hit joint 1's)
-        return np.clip(q + np.sign(qd) * distance, self.limits.lower + IK_LIMIT_MARGIN,
+        return self.inside_limits(q + np.sign(qd) * distance)
+
+    def inside_limits(self, q: np.ndarray) -> np.ndarray:
+        """``q`` clipped to the joint limits less IK's margin: a waypoint on a limit is a
+        motion that ends on it, which a Franka stops with a reflex (the soak hit joint 1's
+        limit through a braking point and through an escape candidate)."""
+        return np.clip(q, self.limits.lower + IK_LIMIT_MARGIN,
                        self.limits.upper - IK_LIMIT_MARGIN)
 
     def _route_moving(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
@@ -513,7 +517,7 @@ class Planner:
             return PlanResult(False, "nothing to escape from")
         rng = rng or np.random.default_rng(0)
         current = self.clearance(q_now, scene.ahead)
-        jitter = self.limits.clip(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
+        jitter = self.inside_limits(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
         pool = jitter
         if self._tree is not None:
             _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))

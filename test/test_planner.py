@@ -190,3 +190,13 @@ def test_a_moving_arm_is_planned_from_where_it_stops(planner, robots):
     ball = Shape("sphere", (0.04,), fast.tcp_pose(0.5 * (q0 + q_stop))[0])
     refused = planner.plan(q0, goal, [*scenario.obstacles_at(0.0), ball], qd_start=qd)
     assert not refused.success and "braking" in refused.reason
+
+
+def test_braking_points_and_escape_candidates_stay_off_the_joint_limits(planner):
+    lim = planner.limits
+    q = np.clip(np.zeros(7), lim.lower, lim.upper)
+    q[0] = lim.upper[0] - 0.01
+    stop = planner.braking_point(q, np.array([2.0, 0, 0, 0, 0, 0, 0]))
+    assert stop[0] < lim.upper[0] and stop[0] == pytest.approx(lim.upper[0] - 0.005)
+    far = planner.inside_limits(np.full(7, 100.0))
+    assert np.all(far < lim.upper) and np.all(planner.inside_limits(-far) > lim.lower)
