@@ -22,6 +22,10 @@ from damon_ros.trajectory import METHODS, Spline
 # Fraction of the acceleration limit used for the braking curve before a position limit; the
 # rest is headroom for the jerk-limited transition into braking and for tracking lag.
 POSITION_BRAKE_FRACTION = 0.5
+POSITION_LIMIT_MARGIN = 0.01
+"""rad: the command brakes to a stop this far inside each position limit. Braking to the
+limit itself let the actuator's lag carry the mock arm onto it (the soak's limit monitor
+counted joint 1 reaching 2.8973 rad); a Franka stops with a reflex there."""
 
 
 def _per_joint(name: str, value, n: int) -> np.ndarray:
@@ -234,12 +238,14 @@ class CommandShaper:
         self._brake = 2.0 * POSITION_BRAKE_FRACTION * limits.acceleration
 
     def position_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(low, high) velocity bounds that brake to a stop at the position limits.
+        """(low, high) velocity bounds that brake to a stop `POSITION_LIMIT_MARGIN` inside the
+        position limits.
 
         v <= sqrt(2 b d) with d the distance left and b a fraction of the acceleration limit,
         so motion toward a limit fades to zero at the limit, and none is allowed past it.
         """
-        room = np.maximum(np.array((self.upper - q, q - self.lower)), 0.0)
+        room = np.maximum(np.array((self.upper - POSITION_LIMIT_MARGIN - q,
+                                    q - self.lower - POSITION_LIMIT_MARGIN)), 0.0)
         up, down = np.minimum(np.sqrt(self._brake * room), self.vmax)
         return -down, up
 

@@ -56,7 +56,8 @@ where the meshes touch; after the containment growth and before this margin, fas
 is at most −1.3 mm (median −28 mm) where apart and fast ≤ −2.5 mm where the meshes touch:
 "fast > 0 ⇒ mesh > 0" held on every sample, with this margin as reserve."""
 SURFACE_STEP = 0.004
-IK_LIMIT_MARGIN = 0.005  # rad: IK solutions keep this far inside the joint limits
+IK_LIMIT_MARGIN = 0.02  # rad: IK solutions keep this far inside the joint limits (and
+# outside control.POSITION_LIMIT_MARGIN, where the controller brakes to a stop)
 """Largest edge (m) of the triangles the mesh surfaces are cut into to check that the fast
 model's spheres contain them; every surface point is within ``SURFACE_STEP / √3`` (2.3 mm)
 of a checked point, which :data:`FAST_MODEL_MARGIN` covers."""

@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from damon_ros.control import (
+    POSITION_LIMIT_MARGIN,
     CommandShaper,
     PIDGains,
     TrajectoryFollower,
@@ -269,7 +270,8 @@ def test_integral_is_clamped_and_does_not_wind_up_while_saturated():
 
 
 def test_never_commands_past_a_position_limit():
-    """Hold a target beyond the upper limits: an ideal arm stops at the limits, not past."""
+    """Hold a target beyond the upper limits: an ideal arm stops `POSITION_LIMIT_MARGIN`
+    inside them, never on or past them."""
     f = TrajectoryFollower(LIM)
     q = HOME.copy()
     watch = LimitWatch()
@@ -279,8 +281,8 @@ def test_never_commands_past_a_position_limit():
         u = f.update(k * DT, q)
         watch.check(u, DT)
         q = q + u * DT
-        assert np.all(q <= LIM.upper + 1e-4), q - LIM.upper
-    assert np.allclose(q, LIM.upper, atol=2e-3)
+        assert np.all(q <= LIM.upper - POSITION_LIMIT_MARGIN + 1e-4), q - LIM.upper
+    assert np.allclose(q, LIM.upper - POSITION_LIMIT_MARGIN, atol=2e-3)
     q = LIM.lower.copy()
     f = TrajectoryFollower(LIM)
     f.hold(LIM.lower - 1.0)
