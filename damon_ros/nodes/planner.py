@@ -178,8 +178,12 @@ class PlannerNode(Node):
                 return None, None
             return self.q.copy(), None if self.qd is None else self.qd.copy()
 
-    def _obstacles(self, now: float) -> list:
-        return [(o.shape, o.velocity) for o in self.table.obstacles(now)]
+    def _perception(self) -> tuple[list, float]:
+        """(obstacle shape, velocity) pairs now, and the age of the obstacle data (inf
+        before any valid data): what every decision of the runtime takes."""
+        now = self._now()
+        obstacles = [(o.shape, o.velocity) for o in self.table.obstacles(now)]
+        return obstacles, now - self.table.last_update
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
         if self._obstacles_received is None:
@@ -216,10 +220,8 @@ class PlannerNode(Node):
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
                                   msg.pose.position.z]), np.array([o.x, o.y, o.z, o.w]))
         with self.deciding:
-            now = self._now()
-            age = now - self.table.last_update  # inf before any valid obstacle data
-            event = self.runtime.set_goal(q, goal, self._obstacles(now), perception_age_s=age,
-                                          qd_now=qd)
+            obstacles, age = self._perception()
+            event = self.runtime.set_goal(q, goal, obstacles, perception_age_s=age, qd_now=qd)
             self._act(event, received, "goal")
         return event
 
@@ -232,9 +234,8 @@ class PlannerNode(Node):
         if q is None or self.runtime.state in ("idle", "reached"):
             return
         with self.deciding:
-            now = self._now()
-            age = now - self.table.last_update  # inf before any valid obstacle data
-            event = self.runtime.update(now, q, self._obstacles(now), perception_age_s=age,
+            obstacles, age = self._perception()
+            event = self.runtime.update(self._now(), q, obstacles, perception_age_s=age,
                                         qd_now=qd)
             self._act(event, received, "update")
 
