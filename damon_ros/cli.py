@@ -13,26 +13,28 @@ import sys
 
 # name -> (module, function taking argv and returning an exit code, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
-    "demo": ("damon_ros.demo", "main",
+    "demo": ("damon_ros.tools.demo", "main",
              "closed-loop demo: every node over real DDS, a goal, plots and a summary"),
     "clearance": (
-        "damon_ros.clearance_report", "main",
+        "damon_ros.tools.clearance", "main",
         "load scenarios and print the robot's exact clearance to each obstacle",
     ),
-    "collect": ("damon_ros.collect", "collect_main",
+    "collect": ("damon_ros.learning.collect", "collect_main",
                 "collect labelled samples [q, obstacle point, flag] (module 1 data)"),
-    "train": ("damon_ros.vae", "train_main", "train the VAE latent manifold on collected samples"),
-    "build-graph": ("damon_ros.pipeline", "main",
+    "train": ("damon_ros.learning.vae", "train_main",
+              "train the VAE latent manifold on collected samples"),
+    "build-graph": ("damon_ros.learning.graph_builder", "main",
                     "build the two-layer latent graph and fit the GMR into a model directory"),
-    "analyze": ("damon_ros.analysis", "main",
+    "analyze": ("damon_ros.tools.analysis", "main",
                 "GMR runtime model, graph-size sweep (N*) and the paper's plots"),
-    "bench": ("damon_ros.bench", "main",
+    "bench": ("damon_ros.tools.bench", "main",
               "closed-loop benchmark vs OMPL on scenarios and MotionBenchMaker problems"),
-    "report": ("damon_ros.report", "main", "write docs/BENCHMARKS.md from bench result files"),
-    "soak": ("damon_ros.soak", "main",
+    "report": ("damon_ros.tools.report", "main",
+               "write docs/BENCHMARKS.md from bench result files"),
+    "soak": ("damon_ros.tools.soak", "main",
              "all nodes for N minutes: throughput, latency, memory, contacts, limits"),
     "bench-robot": (
-        "damon_ros.bench_robot", "main",
+        "damon_ros.tools.bench_robot", "main",
         "micro-benchmark of FK, IK and distance queries (median µs)",
     ),
 }

@@ -6,12 +6,13 @@ import json
 
 import numpy as np
 
-from damon_ros.bench import main as bench
-from damon_ros.closed_loop import SimConfig, run_scenario
-from damon_ros.planner import Planner, PlanResult
-from damon_ros.robot import Robot
-from damon_ros.runtime import ReactivePlanner
-from damon_ros.scenario import load_public_scenarios, public_scenarios_dir
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.core.robot import Robot
+from damon_ros.core.scenario import load_public_scenarios
+from damon_ros.planning.graph_planner import Planner, PlanResult
+from damon_ros.planning.reactive import ReactivePlanner
+from damon_ros.simulation.closed_loop import SimConfig, run_scenario
+from damon_ros.tools.bench import main as bench
 
 FIELDS = {"scenario", "planner", "success", "collided", "min_clearance_m", "total_time_s",
           "planning_time_s", "replans", "replan_latency_ms", "path_length_rad",

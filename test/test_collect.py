@@ -8,7 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from damon_ros.collect import (
+from damon_ros.core.robot import Robot
+from damon_ros.core.shapes import Shape
+from damon_ros.learning.collect import (
     SHOULDER,
     ArmChain,
     CollectConfig,
@@ -19,8 +21,6 @@ from damon_ros.collect import (
     load_dataset,
     workspace_nodes,
 )
-from damon_ros.robot import Robot
-from damon_ros.shapes import Shape
 
 N, CHUNK = 3000, 1000
 

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from damon_ros.control import (
+from damon_ros.core.limits import joint_limits
+from damon_ros.planning.follower import (
     POSITION_LIMIT_MARGIN,
     CommandShaper,
     PIDGains,
@@ -17,8 +18,7 @@ from damon_ros.control import (
     reorder_points,
     validate_trajectory,
 )
-from damon_ros.limits import joint_limits
-from damon_ros.trajectory import interpolate, time_parameterize
+from damon_ros.planning.trajectory import interpolate, time_parameterize
 
 LIM = joint_limits("panda")
 NAMES = list(LIM.names)

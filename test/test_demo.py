@@ -16,9 +16,9 @@ import pytest
 import yaml
 from rosutil import next_domain_id
 
-from damon_ros.robot import Robot
-from damon_ros.scenario import public_scenarios_dir
-from damon_ros.shapes import Shape
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.core.robot import Robot
+from damon_ros.core.shapes import Shape
 
 TIMEOUT_S = 150
 
@@ -60,8 +60,8 @@ def crossing_scenario(tmp_path):
     planner takes in the empty scene (where the wrist will be part-way through the motion, clear of
     the start and goal poses) shortly
     after the goal is given: the plan made at t = 0 is then blocked and must be re-routed."""
-    from damon_ros.model import DamonModel
-    from damon_ros.planner import Planner, PoseGoal
+    from damon_ros.learning.bundle import DamonModel
+    from damon_ros.planning.graph_planner import Planner, PoseGoal
 
     data = yaml.safe_load((public_scenarios_dir() / "D-001.yaml").read_text())
     robot = Robot("fast")

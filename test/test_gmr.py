@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from damon_ros.gmr import CollisionGMR, predicted_runtime, reliability
+from damon_ros.learning.gmr import CollisionGMR, predicted_runtime, reliability
 
 
 @pytest.fixture(scope="module")

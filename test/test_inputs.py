@@ -18,11 +18,11 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker
 
-from damon_ros.control import validate_trajectory
-from damon_ros.inputs import CLOCK_RESET_S, InputError, JointStateReader, goal_problem
-from damon_ros.limits import joint_limits
-from damon_ros.markers import MAX_SIZE_M, ObstacleTable
+from damon_ros.core.limits import joint_limits
 from damon_ros.nodes.common import ProblemLog
+from damon_ros.planning.follower import validate_trajectory
+from damon_ros.ros.inputs import CLOCK_RESET_S, InputError, JointStateReader, goal_problem
+from damon_ros.ros.markers import MAX_SIZE_M, ObstacleTable
 
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 LIM = joint_limits("panda")

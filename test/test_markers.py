@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from visualization_msgs.msg import Marker
 
-from damon_ros.markers import (
+from damon_ros.core.shapes import Shape
+from damon_ros.ros.markers import (
     MAX_SIZE_M,
     ObstacleTable,
     class_rgba,
@@ -22,7 +23,6 @@ from damon_ros.markers import (
     stamp_seconds,
     to_stamp,
 )
-from damon_ros.shapes import Shape
 
 FRAME = "panda_link0"
 RGBA = (0.1, 0.8, 0.2, 0.7)

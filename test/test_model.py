@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import rosutil
 
-from damon_ros.model import FILES, DamonModel, ModelError, default_model_dir, sha256
+from damon_ros.core.resources import default_model_dir, sha256
+from damon_ros.learning.bundle import FILES, DamonModel, ModelError
 
 
 @pytest.fixture

@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from damon_ros.limits import joint_limits
+from damon_ros.core.limits import joint_limits
 
 CONFIG = rosutil.ROOT / "config"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]

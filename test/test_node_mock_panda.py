@@ -24,8 +24,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from damon_ros.limits import joint_limits
-from damon_ros.scenario import load_scenario
+from damon_ros.core.limits import joint_limits
+from damon_ros.core.scenario import load_scenario
 
 CONFIG = rosutil.ROOT / "config" / "mock_panda.yaml"
 SCENARIO = Path("/work/shared/scenarios/A-001.yaml")
@@ -208,7 +208,7 @@ def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
 
 def _contact_scenario(tmp_path: Path) -> tuple[Path, np.ndarray]:
     """A-001 with a second, moving ball that reaches the hand of the start pose at t = 1.5 s."""
-    from damon_ros.robot import Robot
+    from damon_ros.core.robot import Robot
 
     data = yaml.safe_load(SCENARIO.read_text())
     start = np.array(data["start"]["joints"])

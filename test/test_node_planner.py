@@ -31,9 +31,9 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.markers import shape_to_marker
-from damon_ros.robot import Robot
-from damon_ros.shapes import Shape
+from damon_ros.core.robot import Robot
+from damon_ros.core.shapes import Shape
+from damon_ros.ros.markers import shape_to_marker
 
 CONFIG = rosutil.ROOT / "config"
 FRAME = "panda_link0"

@@ -32,12 +32,14 @@ from rosutil import (
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.markers import ObstacleTable, stamp_seconds, to_stamp
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.core.scenario import load_scenario
+from damon_ros.core.shapes import Shape
 from damon_ros.nodes import common, mock_camera, tracker
-from damon_ros.render import load_camera, render, scene_at
-from damon_ros.scenario import load_scenario, public_scenarios_dir
-from damon_ros.shapes import Shape
-from damon_ros.tracking import Track
+from damon_ros.perception.camera import load_camera
+from damon_ros.perception.tracking import Track
+from damon_ros.ros.markers import ObstacleTable, stamp_seconds, to_stamp
+from damon_ros.simulation.renderer import render, scene_at
 
 SCENARIOS = public_scenarios_dir()
 COLOR, DEPTH, INFO = tracker.COLOR_TOPIC, tracker.DEPTH_TOPIC, tracker.INFO_TOPIC

@@ -7,8 +7,8 @@ import json
 import pytest
 
 from damon_ros.cli import main as cli
-from damon_ros.model import DamonModel, ModelError
-from damon_ros.scenario import public_scenarios_dir
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.learning.bundle import DamonModel, ModelError
 
 
 @pytest.fixture(scope="module")

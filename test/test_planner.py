@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from damon_ros.limits import joint_limits
-from damon_ros.model import DamonModel
-from damon_ros.planner import Planner, PoseGoal
-from damon_ros.robot import Robot
-from damon_ros.runtime import ReactivePlanner, swept
-from damon_ros.scenario import load_public_scenarios
-from damon_ros.shapes import Shape
+from damon_ros.core.limits import joint_limits
+from damon_ros.core.robot import Robot
+from damon_ros.core.scenario import load_public_scenarios
+from damon_ros.core.shapes import Shape
+from damon_ros.learning.bundle import DamonModel
+from damon_ros.planning.graph_planner import Planner, PoseGoal
+from damon_ros.planning.reactive import ReactivePlanner, swept
 
 SCENARIOS = load_public_scenarios()
 

@@ -14,23 +14,19 @@ import numpy as np
 import pytest
 import yaml
 
-from damon_ros.render import (
-    BACKGROUND_RGB,
-    COLOR_RGB,
+from damon_ros.core.resources import config_file
+from damon_ros.core.scenario import COLOR_RGB, load_public_scenarios
+from damon_ros.core.shapes import Shape, point
+from damon_ros.perception.camera import (
     Camera,
-    config_file,
     deproject,
     load_camera,
-    load_render_settings,
     pose_matrix,
     project,
-    render,
-    scene_at,
     to_base_frame,
     to_camera_frame,
 )
-from damon_ros.scenario import load_public_scenarios
-from damon_ros.shapes import Shape, point
+from damon_ros.simulation.renderer import BACKGROUND_RGB, load_render_settings, render, scene_at
 
 LOOK_DOWN_X = [0.5, -0.5, 0.5, -0.5]
 """Optical frame looking along base +x (z_opt = x, x_opt = -y, y_opt = -z)."""

@@ -9,9 +9,8 @@ import coal
 import numpy as np
 import pytest
 
-from damon_ros import bench_robot
-from damon_ros.limits import joint_limits
-from damon_ros.robot import (
+from damon_ros.core.limits import joint_limits
+from damon_ros.core.robot import (
     FAST_MODEL_MARGIN,
     READY,
     Robot,
@@ -21,7 +20,8 @@ from damon_ros.robot import (
     signed_distance,
     surface_points,
 )
-from damon_ros.shapes import Shape, point
+from damon_ros.core.shapes import Shape, point
+from damon_ros.tools import bench_robot
 
 # Franka's published modified (Craig) DH parameters: (a, d, alpha) per joint, then the flange.
 DH = [(0.0, 0.333, 0.0), (0.0, 0.0, -math.pi / 2), (0.0, 0.316, math.pi / 2),

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import yaml
 
-from damon_ros.scenario import (
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.core.scenario import (
     ScenarioError,
     load_public_scenarios,
     load_scenario,
     parse_scenario,
-    public_scenarios_dir,
     scenario_files,
 )
 

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from damon_ros.control import TrajectoryFollower
-from damon_ros.limits import joint_limits
-from damon_ros.scenario import load_public_scenarios
-from damon_ros.sim import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
-from damon_ros.trajectory import time_parameterize
+from damon_ros.core.limits import joint_limits
+from damon_ros.core.scenario import load_public_scenarios
+from damon_ros.planning.follower import TrajectoryFollower
+from damon_ros.planning.trajectory import time_parameterize
+from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 LIM = joint_limits("panda")
 HOME = np.array([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8])

@@ -14,8 +14,8 @@ import math
 import numpy as np
 from rosutil import next_domain_id
 
-from damon_ros import soak
-from damon_ros.soak import NODES, verdict
+from damon_ros.tools import soak
+from damon_ros.tools.soak import NODES, verdict
 
 
 def test_short_soak_passes_with_goals_reached_and_every_node_measured(tmp_path, capsys):
@@ -69,7 +69,7 @@ def test_verdict_fails_on_contact_violation_latency_and_memory_drift():
 
 
 def test_soak_scenario_is_valid_and_sweeps_last_the_whole_run(tmp_path):
-    from damon_ros.scenario import load_scenario
+    from damon_ros.core.scenario import load_scenario
 
     path, goals = soak.write_soak_scenario(tmp_path, 300.0)
     scenario = load_scenario(path)

@@ -1,6 +1,7 @@
 """The HSV + depth tracker recovers rendered obstacles, bounds them safely and tracks them.
 
-Frames come from the mock RealSense (damon_ros.render), so ground truth is exact: sphere
+Frames come from the mock RealSense (damon_ros.simulation.renderer), so
+ground truth is exact: sphere
 centres must be recovered within 1 cm, every bound must contain the true obstacle, ids
 must persist and velocities match the scenario's motion.
 """
@@ -14,19 +15,11 @@ import numpy as np
 import pytest
 import yaml
 
-from damon_ros.render import (
-    AMBIENT,
-    COLOR_RGB,
-    Camera,
-    config_file,
-    load_camera,
-    pose_matrix,
-    render,
-    scene_at,
-)
-from damon_ros.scenario import load_public_scenarios
-from damon_ros.shapes import Shape
-from damon_ros.tracking import (
+from damon_ros.core.resources import config_file
+from damon_ros.core.scenario import COLOR_RGB, load_public_scenarios
+from damon_ros.core.shapes import Shape
+from damon_ros.perception.camera import Camera, load_camera, pose_matrix
+from damon_ros.perception.tracking import (
     FrameSynchronizer,
     Tracker,
     check_images,
@@ -36,6 +29,7 @@ from damon_ros.tracking import (
     fit_sphere,
     load_tracker_config,
 )
+from damon_ros.simulation.renderer import AMBIENT, render, scene_at
 
 CAMERA = load_camera()
 CONFIG = load_tracker_config()

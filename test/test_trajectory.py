@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from damon_ros.limits import joint_limits
-from damon_ros.trajectory import Spline, Trajectory, interpolate, time_grid, time_parameterize
+from damon_ros.core.limits import joint_limits
+from damon_ros.planning.trajectory import (
+    Spline,
+    Trajectory,
+    interpolate,
+    time_grid,
+    time_parameterize,
+)
 
 LIM = joint_limits("panda")
 ON_LINE = 1e-6

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from damon_ros.collect import collect, load_dataset
-from damon_ros.model import read_meta
-from damon_ros.vae import (
+from damon_ros.learning.bundle import read_meta
+from damon_ros.learning.collect import collect, load_dataset
+from damon_ros.learning.vae import (
     Architecture,
     VAEError,
     evaluate,

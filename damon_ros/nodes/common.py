@@ -13,7 +13,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -27,7 +26,8 @@ from rclpy.executors import (
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from damon_ros.inputs import InputError, JointStateReader
+from damon_ros.core.resources import config_dir
+from damon_ros.ros.inputs import InputError, JointStateReader
 
 
 def declare(
@@ -100,14 +100,6 @@ class ProblemLog:
         return True
 
 
-def config_dir() -> Path:
-    """``config/`` of the source checkout, else of the installed package share directory."""
-    source = Path(__file__).resolve().parents[2] / "config"
-    if source.is_dir():
-        return source
-    from ament_index_python.packages import get_package_share_directory
-
-    return Path(get_package_share_directory("damon_ros")) / "config"
 
 
 def joint_names(joints: Sequence[str] | None, prefix: str) -> list[str]:

@@ -6,7 +6,7 @@ joints in (``/joint_states``), velocity commands out (``/damon/joint_commands``,
 ``rate_hz``, and ``/damon/controller_state`` (``sensor_msgs/JointState``: desired position in
 ``position``, desired velocity in ``velocity``, position error in ``effort``) at
 ``state_rate_hz``. Interpolation, PID and the limit-respecting command shaping are
-`damon_ros.control`'s; this module decides *when* to call it and what to do on bad or
+`damon_ros.planning.follower`'s; this module decides *when* to call it and what to do on bad or
 missing input:
 
 - Trajectories follow ros2_controllers' JTC: a zero ``header.stamp`` starts on arrival, any
@@ -21,7 +21,7 @@ missing input:
   break the acceleration and jerk limits a Franka enforces), then zeros are published while
   the states stay stale. Logged once; when states return the arm holds where it is. A
   joint state holding NaN/inf, lacking a controller joint or stamped before the last one
-  (`damon_ros.inputs.JointStateReader`) is ignored with one warning per kind of problem
+  (`damon_ros.ros.inputs.JointStateReader`) is ignored with one warning per kind of problem
   (repeats: one line per 5 s with a count), so that a stream of them ends in this stop.
 - ``planner_heartbeat_timeout_s`` > 0: while a trajectory is active and no
   ``/damon/planner_status`` arrived for that long, the arm holds (logged once per lapse).
@@ -46,11 +46,16 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
-from damon_ros.control import PIDGains, TrajectoryFollower, reorder_points, validate_trajectory
-from damon_ros.inputs import JointStateReader
-from damon_ros.limits import PROFILES, joint_limits
+from damon_ros.core.limits import PROFILES, joint_limits
 from damon_ros.nodes import common
-from damon_ros.trajectory import METHODS
+from damon_ros.planning.follower import (
+    PIDGains,
+    TrajectoryFollower,
+    reorder_points,
+    validate_trajectory,
+)
+from damon_ros.planning.trajectory import METHODS
+from damon_ros.ros.inputs import JointStateReader
 
 NAME = "controller"
 TRAJECTORY_TOPIC = "/damon/joint_trajectory"

@@ -1,4 +1,4 @@
-"""mock_camera: the RealSense stand-in, a thin ROS adapter over `damon_ros.render`.
+"""mock_camera: the RealSense stand-in, a thin ROS adapter over `damon_ros.simulation.renderer`.
 
 Renders the obstacles of a scenario file, at scenario time, seen from the calibrated camera
 pose (``config/camera.yaml``), and publishes what a D435 driver would: colour (``rgb8``),
@@ -42,18 +42,17 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
-from damon_ros.markers import class_rgba, shape_to_marker, to_stamp
+from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.nodes import common
-from damon_ros.render import (
-    Camera,
+from damon_ros.perception.camera import Camera, load_camera
+from damon_ros.ros.markers import class_rgba, shape_to_marker, to_stamp
+from damon_ros.simulation.renderer import (
     RenderSettings,
-    load_camera,
     load_render_settings,
     render,
     render_settings_kwargs,
     scene_at,
 )
-from damon_ros.scenario import Scenario, load_scenario
 
 NAME = "mock_camera"
 COLOR_TOPIC = "/camera/camera/color/image_raw"

@@ -1,4 +1,5 @@
-"""mock_panda: the hardware stand-in, a thin ROS adapter over `damon_ros.sim.ArmSim`.
+"""mock_panda: the hardware stand-in, a thin ROS adapter over
+`damon_ros.simulation.mock_arm.ArmSim`.
 
 Velocity commands in (``/damon/joint_commands``, ``std_msgs/Float64MultiArray``, rad/s in the
 order of the ``joints`` parameter), joint states out (``/joint_states`` at ``rate_hz``).
@@ -12,7 +13,7 @@ real elapsed time, so the mock arm moves in wall-clock time even when a tick is 
 executor only copies commands into the model under a lock.
 
 Optional contact report (``contact_check``): with a ``scenario`` loaded, the exact mesh
-clearance (`damon_ros.robot.Robot("mesh")`) between the arm and the scenario's obstacles at
+clearance (`damon_ros.core.robot.Robot("mesh")`) between the arm and the scenario's obstacles at
 scenario time is published on ``/damon/sim/contact`` (``diagnostic_msgs/DiagnosticArray``,
 level ERROR on contact) at ``contact_rate_hz``, computed in ~0.2 ms slices inside the loop
 (see `ContactMonitor` for why not in a timer). Scenario time 0 is ``scenario_start_time_s``
@@ -20,7 +21,8 @@ level ERROR on contact) at ``contact_rate_hz``, computed in ~0.2 ms slices insid
 
 Limit monitor (``limit_check``, on by default): a real Franka stops with a reflex when a
 command breaks its velocity, acceleration or jerk limits or a joint reaches a position
-limit; the mock arm only clamps. `damon_ros.sim.LimitMonitor` counts every accepted command
+limit; the mock arm only clamps. `damon_ros.simulation.mock_arm.LimitMonitor`
+counts every accepted command
 that would have tripped such a reflex (acceleration and jerk from consecutive commands at
 the nominal ``1 / rate_hz`` period; commands sent or received after a gap of more than 1.5
 periods are counted as late instead) and every entry of a joint into a position limit. The counts
@@ -44,10 +46,10 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from damon_ros.limits import PROFILES, JointLimits, joint_limits
+from damon_ros.core.limits import PROFILES, JointLimits, joint_limits
+from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.nodes import common
-from damon_ros.scenario import Scenario, load_scenario
-from damon_ros.sim import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
+from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 NAME = "mock_panda"
 READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
@@ -96,7 +98,7 @@ class ContactMonitor:
     """
 
     def __init__(self, scenario: Scenario):
-        from damon_ros.robot import Robot  # heavy (pinocchio + coal meshes): only when used
+        from damon_ros.core.robot import Robot  # heavy (pinocchio + coal meshes): only when used
 
         self.scenario = scenario
         self.robot = Robot("mesh")

@@ -1,6 +1,6 @@
 """``planner`` node: goals in, certified joint trajectories out, re-routed on every threat.
 
-Thin adapter over :class:`damon_ros.runtime.ReactivePlanner`: it parses parameters and
+Thin adapter over :class:`damon_ros.planning.reactive.ReactivePlanner`: it parses parameters and
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
 decides. Joint states and obstacle arrays are taken by reader threads of their own
 (`common.TopicReader`: the executor let both go stale), so they keep arriving while a route
@@ -30,7 +30,6 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.inputs import JointStateReader, goal_problem
 from damon_ros.nodes.common import (
     ProblemLog,
     TopicReader,
@@ -41,6 +40,7 @@ from damon_ros.nodes.common import (
     sec_to_stamp,
     set_realtime_priority,
 )
+from damon_ros.ros.inputs import JointStateReader, goal_problem
 
 PARAMETERS = [
     ("model_dir", "model directory ('' = the shipped models/default)"),
@@ -64,12 +64,12 @@ PARAMETERS = [
 class PlannerNode(Node):
     def __init__(self) -> None:
         super().__init__("planner")
-        from damon_ros.limits import joint_limits
-        from damon_ros.markers import ObstacleTable
-        from damon_ros.model import DamonModel
-        from damon_ros.planner import Planner, PlannerConfig
-        from damon_ros.robot import Robot
-        from damon_ros.runtime import ReactivePlanner, RuntimeConfig
+        from damon_ros.core.limits import joint_limits
+        from damon_ros.core.robot import Robot
+        from damon_ros.learning.bundle import DamonModel
+        from damon_ros.planning.graph_planner import Planner, PlannerConfig
+        from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
+        from damon_ros.ros.markers import ObstacleTable
 
         p = self._read_parameters()
         self.limits = joint_limits(p["limit_profile"], p["joint_prefix"])
@@ -202,7 +202,7 @@ class PlannerNode(Node):
         self._set_goal(msg, time.perf_counter())
 
     def _set_goal(self, msg: PoseStamped, received: float):
-        from damon_ros.planner import PoseGoal
+        from damon_ros.planning.graph_planner import PoseGoal
 
         problem = goal_problem(msg, self.base_frame)
         if problem:
@@ -376,7 +376,7 @@ def main(args=None) -> int:
         print_help("planner", "DAMON latent-graph planner: goal_pose in, certified "
                    "JointTrajectory out, re-routed on every obstacle threat.", PARAMETERS)
         return 0
-    from damon_ros.model import ModelError
+    from damon_ros.learning.bundle import ModelError
 
     try:
         return run_single_threaded(PlannerNode, argv)

@@ -1,4 +1,5 @@
-"""tracker: the HSV + depth obstacle tracker, a thin ROS adapter over `damon_ros.tracking`.
+"""tracker: the HSV + depth obstacle tracker, a thin ROS adapter over
+`damon_ros.perception.tracking`.
 
 Colour (``rgb8``/``bgr8``) and aligned depth (``16UC1``/``mono16``/``32FC1``) images in,
 paired by stamp (`FrameSynchronizer`), tracked (`Tracker.update`), and published as one
@@ -43,10 +44,9 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
-from damon_ros.markers import class_rgba, delete_marker, shape_to_marker, stamp_seconds
 from damon_ros.nodes import common
-from damon_ros.render import Camera, load_camera
-from damon_ros.tracking import (
+from damon_ros.perception.camera import Camera, load_camera
+from damon_ros.perception.tracking import (
     COLOR_ENCODINGS,
     DEPTH_ENCODINGS,
     FrameSynchronizer,
@@ -56,6 +56,7 @@ from damon_ros.tracking import (
     decode_depth,
     load_tracker_config,
 )
+from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker, stamp_seconds
 
 NAME = "tracker"
 COLOR_TOPIC = "/camera/camera/color/image_raw"

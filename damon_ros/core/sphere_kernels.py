@@ -1,0 +1,190 @@
+"""Compiled kernels of the fast (sphere) collision model: the planner's hot path.
+
+Re-routing within a camera frame means certifying a whole path — hundreds of joint states
+against every obstacle — in about a millisecond. numpy spends most of that on small-array
+overhead, so the forward kinematics of the sphere centres and the sphere↔shape signed
+distances are compiled with numba (cached on disk after the first call). The maths is the
+same as :func:`damon_ros.core.robot.signed_distance`; tests compare the two.
+
+Obstacles are packed as arrays: ``kind`` (0 sphere, 1 box, 2 cylinder, 3 bounding sphere of
+a point set), ``position`` (K, 3), ``rotation`` (K, 3, 3) and ``params`` (K, 3) — sphere
+radius; box half extents; cylinder radius and half length.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numba import njit
+
+from damon_ros.core.shapes import Shape
+
+SPHERE, BOX, CYLINDER = 0, 1, 2
+
+
+def pack_obstacles(obstacles: Sequence[Shape]):
+    """Shapes → (kind, position, rotation, params) arrays for the kernels."""
+    k = len(obstacles)
+    kind = np.zeros(k, np.int64)
+    pos = np.zeros((k, 3))
+    rot = np.zeros((k, 3, 3))
+    params = np.zeros((k, 3))
+    for i, s in enumerate(obstacles):
+        rot[i] = s.rotation()
+        pos[i] = s.position
+        if s.kind == "sphere":
+            kind[i], params[i, 0] = SPHERE, s.size[0]
+        elif s.kind == "box":
+            kind[i], params[i] = BOX, 0.5 * np.asarray(s.size)
+        elif s.kind == "cylinder":
+            kind[i], params[i, :2] = CYLINDER, (s.size[0], 0.5 * s.size[1])
+        else:  # points: the bounding sphere of the set (conservative), a point exactly
+            world = s.position + s.points @ rot[i].T
+            center = world.mean(axis=0)
+            kind[i], pos[i] = SPHERE, center
+            params[i, 0] = float(np.max(np.linalg.norm(world - center, axis=1)))
+    return kind, pos, rot, params
+
+
+@njit(cache=True, fastmath=False)
+def _signed(px, py, pz, kind, pos, rot, params, k):
+    dx, dy, dz = px - pos[k, 0], py - pos[k, 1], pz - pos[k, 2]
+    if kind[k] == SPHERE:
+        return math.sqrt(dx * dx + dy * dy + dz * dz) - params[k, 0]
+    # into the shape's frame: local = R^T (p - c)
+    lx = rot[k, 0, 0] * dx + rot[k, 1, 0] * dy + rot[k, 2, 0] * dz
+    ly = rot[k, 0, 1] * dx + rot[k, 1, 1] * dy + rot[k, 2, 1] * dz
+    lz = rot[k, 0, 2] * dx + rot[k, 1, 2] * dy + rot[k, 2, 2] * dz
+    if kind[k] == BOX:
+        ex, ey, ez = abs(lx) - params[k, 0], abs(ly) - params[k, 1], abs(lz) - params[k, 2]
+        ox, oy, oz = max(ex, 0.0), max(ey, 0.0), max(ez, 0.0)
+        return math.sqrt(ox * ox + oy * oy + oz * oz) + min(max(ex, max(ey, ez)), 0.0)
+    radial = math.sqrt(lx * lx + ly * ly) - params[k, 0]
+    axial = abs(lz) - params[k, 1]
+    orad, oax = max(radial, 0.0), max(axial, 0.0)
+    return math.sqrt(orad * orad + oax * oax) + min(max(radial, axial), 0.0)
+
+
+def pack_robot(rotations: np.ndarray, translations: np.ndarray, joints: np.ndarray,
+               centers: np.ndarray, radii: np.ndarray) -> tuple:
+    """Kernel arguments for a sphere model: the joint placements, the spheres sorted by the
+    joint that carries them, and one bounding sphere per joint group (a group whose bound
+    keeps the margin needs none of its spheres checked — most of the arm, most of the time)."""
+    order = np.argsort(joints, kind="stable")
+    sj, sc, sr = joints[order].astype(np.int64), centers[order], radii[order]
+    groups = np.unique(sj)
+    start = np.searchsorted(sj, groups, side="left").astype(np.int64)
+    end = np.searchsorted(sj, groups, side="right").astype(np.int64)
+    gc = np.array([sc[a:b].mean(axis=0) for a, b in zip(start, end, strict=True)])
+    gr = np.array([np.max(np.linalg.norm(sc[a:b] - gc[i], axis=1) + sr[a:b])
+                   for i, (a, b) in enumerate(zip(start, end, strict=True))])
+    return (np.ascontiguousarray(rotations, dtype=float),
+            np.ascontiguousarray(translations, dtype=float), sj, np.ascontiguousarray(sc),
+            np.ascontiguousarray(sr), groups.astype(np.int64), start, end,
+            np.ascontiguousarray(gc), np.ascontiguousarray(gr))
+
+
+@njit(cache=True)
+def _frames(q, jr, jp, fr, fp):
+    """Rotations/positions of every joint frame (explicit loops: numba's small matrix
+    products call BLAS and cost more than the arithmetic); every joint turns about z."""
+    for a in range(3):
+        fp[0, a] = 0.0
+        for b in range(3):
+            fr[0, a, b] = 1.0 if a == b else 0.0
+    for i in range(jr.shape[0]):
+        c, s = math.cos(q[i]), math.sin(q[i])
+        for a in range(3):
+            fp[i + 1, a] = fp[i, a] + (fr[i, a, 0] * jp[i, 0] + fr[i, a, 1] * jp[i, 1]
+                                       + fr[i, a, 2] * jp[i, 2])
+            m0 = fr[i, a, 0] * jr[i, 0, 0] + fr[i, a, 1] * jr[i, 1, 0] + fr[i, a, 2] * jr[i, 2, 0]
+            m1 = fr[i, a, 0] * jr[i, 0, 1] + fr[i, a, 1] * jr[i, 1, 1] + fr[i, a, 2] * jr[i, 2, 1]
+            m2 = fr[i, a, 0] * jr[i, 0, 2] + fr[i, a, 1] * jr[i, 1, 2] + fr[i, a, 2] * jr[i, 2, 2]
+            fr[i + 1, a, 0] = m0 * c + m1 * s
+            fr[i + 1, a, 1] = m1 * c - m0 * s
+            fr[i + 1, a, 2] = m2
+
+
+@njit(cache=True)
+def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos, rot, params,
+                    fr, fp):
+    """min(signed distance, limit) of one configuration: groups whose bounding sphere is at
+    least ``limit`` away are skipped (the signed distance is 1-Lipschitz, so the bound is
+    a true lower bound of every sphere in the group)."""
+    _frames(q, jr, jp, fr, fp)
+    best = limit
+    for g in range(gj.shape[0]):
+        j = gj[g]
+        x = fp[j, 0] + fr[j, 0, 0] * gc[g, 0] + fr[j, 0, 1] * gc[g, 1] + fr[j, 0, 2] * gc[g, 2]
+        y = fp[j, 1] + fr[j, 1, 0] * gc[g, 0] + fr[j, 1, 1] * gc[g, 1] + fr[j, 1, 2] * gc[g, 2]
+        z = fp[j, 2] + fr[j, 2, 0] * gc[g, 0] + fr[j, 2, 1] * gc[g, 1] + fr[j, 2, 2] * gc[g, 2]
+        for k in range(kind.shape[0]):
+            if _signed(x, y, z, kind, pos, rot, params, k) - gr[g] >= best:
+                continue
+            for s_i in range(gs[g], ge[g]):
+                cx = (fp[j, 0] + fr[j, 0, 0] * sc[s_i, 0] + fr[j, 0, 1] * sc[s_i, 1]
+                      + fr[j, 0, 2] * sc[s_i, 2])
+                cy = (fp[j, 1] + fr[j, 1, 0] * sc[s_i, 0] + fr[j, 1, 1] * sc[s_i, 1]
+                      + fr[j, 1, 2] * sc[s_i, 2])
+                cz = (fp[j, 2] + fr[j, 2, 0] * sc[s_i, 0] + fr[j, 2, 1] * sc[s_i, 1]
+                      + fr[j, 2, 2] * sc[s_i, 2])
+                d = _signed(cx, cy, cz, kind, pos, rot, params, k) - sr[s_i]
+                if d < best:
+                    best = d
+    return best
+
+
+@njit(cache=True)
+def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos, rot, params):
+    """Minimum signed distance of each configuration of Q (N, 7) to the packed obstacles."""
+    out = np.empty(Q.shape[0])
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    for n in range(Q.shape[0]):
+        out[n] = _distance_below(Q[n], np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind,
+                                 pos, rot, params, fr, fp)
+    return out
+
+
+@njit(cache=True)
+def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos,
+                  rot, params):
+    """True when all ``steps + 1`` evenly spaced states from q0 to q1 keep ``margin``.
+
+    States are visited coarse to fine (ends, middle, quarters, ...) so a blocked segment is
+    usually found after a few states; each state stops at the first sphere within margin."""
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    q = np.empty(q0.shape[0])
+    order = np.empty(steps + 1, np.int64)
+    visited = np.zeros(steps + 1, np.bool_)
+    n = 0
+    for index in (0, steps):
+        if not visited[index]:
+            visited[index] = True
+            order[n] = index
+            n += 1
+    stride = steps
+    while stride > 1:
+        half = stride // 2
+        for index in range(half, steps, stride):
+            if not visited[index]:
+                visited[index] = True
+                order[n] = index
+                n += 1
+        stride = half
+    for index in range(steps + 1):  # strides that were not powers of two leave gaps
+        if not visited[index]:
+            order[n] = index
+            n += 1
+    for i in range(n):
+        for a in range(q0.shape[0]):
+            q[a] = q0[a] + (q1[a] - q0[a]) * order[i] / steps
+        # the limit sits just above the margin: "nothing below it" is distinguishable from
+        # "a sphere exactly at the margin" (which blocks)
+        if _distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, kind, pos,
+                           rot, params, fr, fp) <= margin:
+            return False
+    return True

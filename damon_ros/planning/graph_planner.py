@@ -1,0 +1,567 @@
+"""The certified DAMON planner: latent-graph routing, proven free by exact geometry.
+
+``plan`` and ``replan`` route over the two-layer latent graph (module 2 of the paper) and
+certify every edge they return against *all* current obstacles with the conservative fast
+collision model at ≤ ``resolution`` rad steps (lazy evaluation: an edge is checked only
+when a shortest path uses it; an invalid edge is removed and the search repeated). The
+search starts in the subgraph of the obstacle node nearest the obstacle point closest to
+the arm (the paper's top-layer lookup) and widens to more subgraphs only when no safe
+route exists there. Nothing unchecked is ever returned: when no certified route exists the
+result says so and the caller holds position.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from damon_ros.core.limits import JointLimits
+from damon_ros.core.robot import IK_LIMIT_MARGIN
+from damon_ros.core.shapes import Shape
+from damon_ros.learning.graph import LatentGraph
+
+
+@dataclass(frozen=True)
+class PoseGoal:
+    """A TCP (``panda_hand_tcp``) target in the base frame; quaternion ``[x, y, z, w]``."""
+
+    position: np.ndarray
+    orientation: np.ndarray
+    position_tolerance: float = 0.01
+    orientation_tolerance: float = 0.05
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Obstacles now, and the same obstacles swept over the prediction horizon.
+
+    The first segment of a path (it leaves the arm's current state) is certified against
+    ``now`` with a margin that lets the arm move away from an obstacle that has already come
+    close; every later segment is certified against ``ahead``."""
+
+    now: tuple[Shape, ...]
+    ahead: tuple[Shape, ...]
+
+    @classmethod
+    def of(cls, obstacles) -> Scene:
+        if isinstance(obstacles, Scene):
+            return obstacles
+        shapes = tuple(obstacles)
+        return cls(shapes, shapes)
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Explicit planner settings (the planner node exposes each as a parameter)."""
+
+    margin: float = 0.01  # λ, m of clearance required on top of the conservative fast model
+    resolution: float = 0.02  # rad, max joint step between checked states on an edge
+    k_attach: int = 10  # graph vertices the start and the goal are each tied to
+    widen: tuple[int, ...] = (1, 8, 0)  # obstacle nodes searched per attempt (0 = all)
+    max_lazy_iterations: int = 300
+    shortcut: bool = True
+    velocity_scale: float = 0.9
+    acceleration_scale: float = 0.8  # leaves the PID room to correct (tracking < 0.02 rad)
+    jerk_scale: float = 0.8
+    trajectory_dt: float = 0.01
+    ik_seeds: int = 16
+    time_budget_s: float = 0.25  # a route search gives up (and says so) after this long
+    exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
+
+
+MOVING_RAD_S = 0.05
+"""Joint speed above which a new route starts where the arm will stop (`_route_moving`)."""
+BRAKE_LATENCY_S = 0.03
+"""Coasting before braking starts: planning, DDS and a controller tick (measured 10-30 ms)."""
+
+
+@dataclass
+class PlanResult:
+    """What a plan or re-plan produced. ``path`` rows are certified straight-line waypoints;
+    when ``success`` is False, ``reason`` says why and nothing should be executed."""
+
+    success: bool
+    reason: str
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    trajectory: object | None = None
+    goal_q: np.ndarray | None = None
+    subgraph: int = -1
+    searched_nodes: int = 0
+    lazy_iterations: int = 0
+    edges_checked: int = 0
+    edges_rejected: int = 0
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.path, axis=0), axis=1).sum())
+
+
+class _Query:
+    """One routing problem: start, goal, obstacles, and the edge-validity cache."""
+
+    START = -1
+    GOAL = -2
+
+    def __init__(self, planner: Planner, q_start, q_goal, scene: Scene):
+        self.p = planner
+        self.q_start = q_start
+        self.q_goal = q_goal
+        self.scene = scene
+        self.start_margin = planner._start_margin(q_start, scene.ahead)
+        self.valid: dict[tuple[int, int], bool] = {}
+        self.checked = 0
+        self.rejected = 0
+        self.iterations = 0
+        self.deadline = time.perf_counter() + planner.config.time_budget_s
+
+    def config(self, v: int) -> np.ndarray:
+        if v == self.START:
+            return self.q_start
+        if v == self.GOAL:
+            return self.q_goal
+        return self.p.graph.q[v]
+
+    def edge_free(self, u: int, v: int) -> bool:
+        key = (u, v) if u < v else (v, u)
+        known = self.valid.get(key)
+        if known is None:
+            q0, q1 = self.config(u), self.config(v)
+            known = self.segment_certified(q0, q1, first=self.START in key,
+                                           last=self.GOAL in key)
+            if known and key[0] < 0:  # not a graph edge: self-collision was not verified offline
+                known = self.p.robot.segment_self_collision_free(q0, q1)
+            self.valid[key] = known
+            self.checked += 1
+            self.rejected += not known
+        return known
+
+    def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool,
+                          last: bool = False) -> bool:
+        """Obstacle check of one segment: a first segment against the obstacles now with the
+        start margin, any other against the swept obstacles with the full margin. A last
+        segment into a goal that only the exact meshes accept (a grasp pose close to an
+        object) is certified on the exact meshes when the conservative model refuses it."""
+        if first:  # swept obstacles too: something falling onto the first segment counts
+            free = self.p.segment_free(q0, q1, self.scene.ahead, self.start_margin)
+        else:
+            free = self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
+        if not free and last and self.p.goal_exact:
+            free = self.p.exact.segment_free(q0, q1, self.scene.ahead,
+                                             margin=self.p.config.exact_goal_margin,
+                                             resolution=self.p.config.resolution)
+        return free
+
+
+class Planner:
+    """Plans and re-plans Panda motions over a :class:`LatentGraph`.
+
+    ``robot`` is a fast (conservative) :class:`damon_ros.core.robot.Robot`; ``risk`` is an optional
+    callable ``(q, obstacles) -> p(collision)`` (the GMR) used by :meth:`path_threatened`.
+    """
+
+    def __init__(self, graph: LatentGraph, robot, limits: JointLimits,
+                 config: PlannerConfig | None = None, risk=None) -> None:
+        self.graph = graph
+        self.robot = robot
+        self.limits = limits
+        self.config = config or PlannerConfig()
+        self.risk = risk
+        self.goal_q: np.ndarray | None = None
+        self.goal_exact = False  # the goal is certified on the exact meshes only
+        self._exact = None
+        # graph None: a subclass finds routes another way (the OMPL baselines)
+        self._safe_ids = np.flatnonzero(graph.safe) if graph is not None else np.zeros(0, int)
+        self._tree = cKDTree(graph.q[self._safe_ids]) if graph is not None else None
+
+    @property
+    def exact(self):
+        """The exact-mesh model, for goals the conservative model cannot certify."""
+        if self._exact is None:
+            from damon_ros.core.robot import Robot
+
+            self._exact = Robot("mesh", self.limits.profile)
+        return self._exact
+
+    def warm_up(self) -> None:
+        """Run every code path once (kernel compilation, caches, the timing library) so the
+        first real goal is planned at full speed, not after seconds of start-up work."""
+        q = self.graph.q[self._safe_ids[0]] if self.graph is not None else np.array(
+            [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+        probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
+        self.segment_free(q, q + 0.01, [probe], self.config.margin)
+        self.robot.distances(q[None], [probe])
+        if self.graph is not None:
+            goal_q = self.graph.q[self._safe_ids[len(self._safe_ids) // 2]]
+            self.plan(q, goal_q, [probe])
+            self.replan(q, [probe])
+            self.goal_q = None
+
+    # ---- geometry -------------------------------------------------------------------
+    def segment_free(self, q0: np.ndarray, q1: np.ndarray, obstacles: Sequence[Shape],
+                     margin: float) -> bool:
+        """A straight joint-space segment is free of obstacles (with margin) and of self-
+        collision at every state no more than ``resolution`` rad apart."""
+        return bool(self.robot.segment_free(q0, q1, obstacles, margin=margin,
+                                            resolution=self.config.resolution))
+
+    def clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
+        if not obstacles:
+            return math.inf
+        return float(self.robot.clearance(q, obstacles).distance)
+
+    def _start_margin(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
+        """The margin demanded of a first segment (it leaves the current state): λ, or less
+        when an obstacle has already come closer than λ, so that the arm can move away.
+        When the obstacle is already inside the fast model's conservative envelope (its
+        distance ≤ 0, while the meshes still have ≥ 4 mm, see robot.FAST_MODEL_MARGIN), the
+        first segment may only move away: no state on it may come any closer."""
+        clearance = self.clearance(q, obstacles)
+        if clearance > 0.0:
+            return min(self.config.margin, 0.5 * clearance)
+        return clearance - 1e-4
+
+    # ---- goals ----------------------------------------------------------------------
+    def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
+        """Joint goal for a pose (IK nearest ``q_near`` with clearance) or a joint vector.
+        Returns ``(q_goal, reason)``; ``q_goal`` is None when the goal is refused."""
+        if isinstance(goal, PoseGoal):
+            result = self.robot.ik(goal.position, goal.orientation, q_near=q_near,
+                                   obstacles=obstacles, min_clearance=self.config.margin,
+                                   n_seeds=self.config.ik_seeds)
+            if not result.success:
+                return None, f"goal pose refused: {result.reason}"
+            q_goal = np.asarray(result.q, float)
+        else:
+            q_goal = np.asarray(goal, float).reshape(-1)
+            if q_goal.shape != (7,) or not np.all(np.isfinite(q_goal)):
+                return None, "goal joints must be 7 finite values"
+            if not self.limits.within(q_goal):
+                return None, "goal joints are outside the joint limits"
+        if self.robot.self_collision(q_goal):
+            return None, "goal configuration is in self-collision"
+        self.goal_exact = False
+        if obstacles and self.clearance(q_goal, obstacles) <= self.config.margin:
+            exact = float(self.exact.clearance(q_goal, obstacles).distance)
+            if exact <= self.config.exact_goal_margin:
+                return None, (f"goal configuration is {exact:.3f} m from an obstacle on the "
+                              f"exact meshes (needs > {self.config.exact_goal_margin} m)")
+            self.goal_exact = True
+        return q_goal, ""
+
+    # ---- planning -------------------------------------------------------------------
+    def plan(self, q_start: np.ndarray, goal, obstacles=(), qd_start=None) -> PlanResult:
+        """Plan from ``q_start`` to a :class:`PoseGoal` or joint goal, certified against all
+        ``obstacles`` (shapes, or a :class:`Scene`); remembers the goal for :meth:`replan`.
+        ``qd_start``: the arm's joint velocities, when it is moving (see `_route_moving`)."""
+        t0 = time.perf_counter()
+        q_start = np.asarray(q_start, float)
+        problem = self._check_start(q_start)
+        if problem:
+            return PlanResult(False, problem)
+        scene = Scene.of(obstacles)
+        q_goal, reason = self.resolve_goal(goal, q_start, scene.now)
+        t_ik = time.perf_counter()
+        if q_goal is None:
+            self.goal_q = None
+            return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
+        self.goal_q = q_goal
+        result = self._route_moving(q_start, qd_start, q_goal, scene)
+        result.timing_ms["ik"] = 1e3 * (t_ik - t0)
+        result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return result
+
+    def replan(self, q_now: np.ndarray, obstacles=(), qd_now=None) -> PlanResult:
+        """Re-route from the current state toward the goal of the last successful plan."""
+        t0 = time.perf_counter()
+        if self.goal_q is None:
+            return PlanResult(False, "no goal to re-plan toward")
+        q_now = np.asarray(q_now, float)
+        problem = self._check_start(q_now)
+        if problem:
+            return PlanResult(False, problem)
+        result = self._route_moving(q_now, qd_now, self.goal_q, Scene.of(obstacles))
+        result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return result
+
+    def braking_point(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Where a moving arm comes to rest when braked now at the full acceleration and jerk
+        limits (per joint, ramp-up of the deceleration included, plus BRAKE_LATENCY_S of
+        coasting), inside the position limits."""
+        v, a, j = np.abs(qd), self.limits.acceleration, self.limits.jerk
+        distance = v * v / (2.0 * a) + v * a / (2.0 * j) + v * BRAKE_LATENCY_S
+        return self.inside_limits(q + np.sign(qd) * distance)
+
+    def inside_limits(self, q: np.ndarray) -> np.ndarray:
+        """``q`` clipped to the joint limits less IK's margin: a waypoint on a limit is a
+        motion that ends on it, which a Franka stops with a reflex (the soak hit joint 1's
+        limit through a braking point and through an escape candidate)."""
+        return np.clip(q, self.limits.lower + IK_LIMIT_MARGIN,
+                       self.limits.upper - IK_LIMIT_MARGIN)
+
+    def _route_moving(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
+        """`_route`, for an arm that may be moving. A trajectory starts at rest, so the
+        controller brakes the arm past ``q_start`` before it follows one: the route starts
+        where the arm stops, and the braking segment before it is certified too (first-
+        segment rules). Without that, a goal changed mid-motion sent the arm 0.1-0.2 rad
+        along its old direction, through space nobody had checked (a contact with a box in
+        the soak)."""
+        if qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S:
+            return self._route(q_start, q_goal, scene)
+        q_stop = self.braking_point(q_start, np.asarray(qd_start, float))
+        query = _Query(self, q_start, q_stop, scene)
+        if not query.segment_certified(q_start, q_stop, first=True):
+            return PlanResult(False, "braking from the current speed is not certified free; "
+                              "holding position", goal_q=q_goal)
+        result = self._route(q_stop, q_goal, scene)
+        if result.success:
+            result.path = np.vstack([q_start[None], result.path])
+            result.trajectory = self._time_parameterize(result.path)
+        return result
+
+    def _check_start(self, q: np.ndarray) -> str:
+        if q.shape != (7,) or not np.all(np.isfinite(q)):
+            return "start state must be 7 finite joint positions"
+        if not self.limits.within(q, tolerance=1e-3):
+            return "start state is outside the joint limits"
+        return ""
+
+    def _route(self, q_start, q_goal, scene: Scene) -> PlanResult:
+        t0 = time.perf_counter()
+        query = _Query(self, q_start, q_goal, scene)
+        order = self._node_order(q_start, scene.now)
+        path_ids, searched = None, 0
+        for width in self.config.widen:
+            searched = len(order) if width == 0 else min(width, len(order))
+            active = np.zeros(self.graph.n_vertices, bool)
+            for m in order[:searched]:
+                active[self.graph.members[m]] = True
+            active &= self.graph.safe
+            path_ids = self._lazy_astar(query, active)
+            if path_ids is not None or searched == len(order) or \
+                    time.perf_counter() >= query.deadline:
+                break
+        t_search = time.perf_counter()
+        result = PlanResult(False, "", goal_q=q_goal, subgraph=int(order[0]) if len(order) else -1,
+                            searched_nodes=searched, lazy_iterations=query.iterations)
+        if path_ids is None:
+            budget = " within the time budget" if time.perf_counter() >= query.deadline else ""
+            result.reason = (f"no certified route to the goal in the graph{budget} "
+                             f"({query.checked} edges checked, {query.rejected} blocked); "
+                             "holding position")
+        else:
+            path = np.array([query.config(v) for v in path_ids])
+            if self.config.shortcut:
+                path = self._shortcut(path, query)
+            result.success, result.path = True, path
+            result.trajectory = self._time_parameterize(path)
+        t_end = time.perf_counter()
+        result.edges_checked, result.edges_rejected = query.checked, query.rejected
+        result.timing_ms.update(search=1e3 * (t_search - t0), shortcut_and_timing=1e3 * (
+            t_end - t_search))
+        return result
+
+    def _node_order(self, q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
+        """Obstacle nodes by distance from the obstacle point closest to the arm (GJK witness
+        point); with no obstacles, every node is equally relevant."""
+        n = len(self.graph.nodes)
+        if not obstacles:
+            return np.arange(n)
+        witness = self.robot.clearance(q, obstacles).obstacle_point
+        return self.graph.nearest_nodes(witness, k=n)
+
+    def _attach(self, q: np.ndarray, active_ids: np.ndarray) -> list[tuple[int, float]]:
+        """The k nearest active vertices to a configuration, with joint-space distances: a
+        direct scan of a small active set, the KD-tree over all safe vertices otherwise."""
+        k = self.config.k_attach
+        if len(active_ids) <= 4096:
+            d = np.linalg.norm(self.graph.q[active_ids] - q, axis=1)
+            nearest = np.argsort(d)[:k] if len(d) <= k else np.argpartition(d, k)[:k]
+            return [(int(active_ids[i]), float(d[i])) for i in nearest]
+        dist, idx = self._tree.query(q, k=min(4 * k, len(self._safe_ids)))
+        return [(int(self._safe_ids[i]), float(x)) for x, i in zip(
+            np.atleast_1d(dist), np.atleast_1d(idx), strict=True)][:k]
+
+    def _lazy_astar(self, query: _Query, active: np.ndarray) -> list[int] | None:
+        """A* over active safe vertices plus start and goal; edges on the found path are
+        checked in order and a blocked one removed before searching again (lazy PRM)."""
+        g = self.graph
+        active_ids = np.flatnonzero(active)
+        start_links = self._attach(query.q_start, active_ids)
+        goal_links = dict(self._attach(query.q_goal, active_ids))
+        direct = float(np.linalg.norm(query.q_goal - query.q_start))
+        heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
+        while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
+                                        and time.perf_counter() < query.deadline):
+            query.iterations += 1
+            path = self._astar(query, active, start_links, goal_links, direct, heuristic)
+            if path is None:
+                return None
+            if all(query.edge_free(u, v) for u, v in zip(path, path[1:], strict=False)):
+                return path
+        return None
+
+    def _astar(self, query, active, start_links, goal_links, direct, heuristic):
+        g = self.graph
+        start, goal = _Query.START, _Query.GOAL
+        cost = {start: 0.0}
+        parent: dict[int, int] = {}
+        closed = set()
+        heap = [(direct, start)]
+        valid = query.valid
+
+        def relax(u: int, v: int, w: float, h: float) -> None:
+            key = (u, v) if u < v else (v, u)
+            if valid.get(key) is False or v in closed:
+                return
+            c = cost[u] + w
+            if c < cost.get(v, math.inf):
+                cost[v] = c
+                parent[v] = u
+                heapq.heappush(heap, (c + h, v))
+
+        while heap:
+            _, u = heapq.heappop(heap)
+            if u in closed:
+                continue
+            if u == goal:
+                path = [goal]
+                while path[-1] != start:
+                    path.append(parent[path[-1]])
+                return path[::-1]
+            closed.add(u)
+            if u == start:
+                relax(u, goal, direct, 0.0)
+                for v, w in start_links:
+                    relax(u, v, w, heuristic[v])
+                continue
+            if u in goal_links:
+                relax(u, goal, goal_links[u], 0.0)
+            lo, hi = g.indptr[u], g.indptr[u + 1]
+            for v, w in zip(g.indices[lo:hi].tolist(), g.weights[lo:hi].tolist(), strict=True):
+                if active[v]:
+                    relax(u, v, w, heuristic[v])
+        return None
+
+    def _shortcut(self, path: np.ndarray, query: _Query) -> np.ndarray:
+        """Greedy shortcutting: from each kept waypoint jump to the farthest later waypoint
+        whose straight segment is certified free (fewer stops, shorter motion)."""
+        keep = [0]
+        i = 0
+        while i < len(path) - 1:
+            for j in range(len(path) - 1, i, -1):
+                if j == i + 1:
+                    break
+                query.checked += 1
+                if query.segment_certified(path[i], path[j], first=i == 0,
+                                           last=j == len(path) - 1) and \
+                        self.robot.segment_self_collision_free(path[i], path[j]):
+                    break
+            keep.append(j)
+            i = j
+        return self._pull_tight(path[keep], query)
+
+    def _pull_tight(self, path: np.ndarray, query: _Query, rounds: int = 10,
+                    fractions: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1)) -> np.ndarray:
+        """Pull each interior waypoint toward the midpoint of its neighbours — as far as its
+        two segments stay certified (the largest of ``fractions`` that works) — for a few
+        rounds: the detour through a far graph vertex shrinks toward the obstacle's
+        silhouette. Cheap obstacle checks first, mesh self-collision only for a winner."""
+        path = path.copy()
+        for _ in range(rounds):
+            moved = 0.0
+            for i in range(1, len(path) - 1):
+                target = 0.5 * (path[i - 1] + path[i + 1])
+                for f in fractions:
+                    candidate = path[i] + f * (target - path[i])
+                    if not self.limits.within(candidate):
+                        continue
+                    query.checked += 2
+                    if (query.segment_certified(path[i - 1], candidate, first=i == 1)
+                            and query.segment_certified(candidate, path[i + 1], first=False,
+                                                        last=i + 1 == len(path) - 1)
+                            and self.robot.segment_self_collision_free(path[i - 1], candidate)
+                            and self.robot.segment_self_collision_free(candidate, path[i + 1])):
+                        moved = max(moved, float(np.max(np.abs(candidate - path[i]))))
+                        path[i] = candidate
+                        break
+            if moved < 0.01 or time.perf_counter() > query.deadline:
+                break
+        return path
+
+    def _time_parameterize(self, path: np.ndarray):
+        from damon_ros.planning.trajectory import time_parameterize
+
+        c = self.config
+        return time_parameterize(path, self.limits, velocity_scale=c.velocity_scale,
+                                 acceleration_scale=c.acceleration_scale,
+                                 jerk_scale=c.jerk_scale, dt=c.trajectory_dt)
+
+    def escape(self, q_now: np.ndarray, obstacles, candidates: int = 96,
+               rng: np.random.Generator | None = None) -> PlanResult:
+        """A short certified move to a configuration with more clearance, for when no route
+        to the goal exists and an obstacle is closing in: holding still is not safe from
+        something that moves. Candidates are nearby graph vertices and random joint
+        perturbations, ranked by clearance from the swept obstacles; the clearest whose
+        straight segment is certified (against the obstacles now) wins."""
+        t0 = time.perf_counter()
+        q_now = np.asarray(q_now, float)
+        scene = Scene.of(obstacles)
+        if not scene.now:
+            return PlanResult(False, "nothing to escape from")
+        rng = rng or np.random.default_rng(0)
+        current = self.clearance(q_now, scene.ahead)
+        jitter = self.inside_limits(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
+        pool = jitter
+        if self._tree is not None:
+            _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))
+            pool = np.vstack([self.graph.q[self._safe_ids[np.atleast_1d(idx)]], jitter])
+        clear = self.robot.distances(pool, scene.ahead)
+        query = _Query(self, q_now, q_now, scene)
+        for i in np.argsort(-clear)[:24]:
+            if clear[i] <= max(current, self.config.margin) + 0.01:
+                break
+            query.checked += 1
+            if query.segment_certified(q_now, pool[i], first=True) and \
+                    self.robot.segment_self_collision_free(q_now, pool[i]):
+                path = np.array([q_now, pool[i]])
+                return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
+                                  path=path, trajectory=self._time_parameterize(path),
+                                  goal_q=self.goal_q, edges_checked=query.checked,
+                                  timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+        return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
+                          timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+
+    # ---- monitoring -----------------------------------------------------------------
+    def path_threatened(self, q_now: np.ndarray, remaining: np.ndarray,
+                        obstacles) -> tuple[bool, str]:
+        """Is the rest of the path (from ``q_now`` through ``remaining`` waypoints) no longer
+        certified free against the current obstacles? Returns (threatened, why).
+
+        ``remaining[0]`` is the point of the path nearest the arm, so the first two segments
+        (the step back onto the path and the rest of the segment the arm is on) leave the
+        current state: they are held to the start margin, exactly as a re-route from here
+        would hold its first segment. With the full margin there, an arm that started
+        closer than 2λ to an obstacle would find each fresh re-route "threatened" at once
+        and halt and re-route again at every check (seen in the camera demo at 40 Hz).
+        """
+        scene = Scene.of(obstacles)
+        if not scene.now:
+            return False, ""
+        q_now = np.asarray(q_now, float)
+        points = np.vstack([q_now[None], np.asarray(remaining, float).reshape(-1, 7)])
+        query = _Query(self, q_now, q_now, scene)
+        for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
+            if not query.segment_certified(a, b, first=i <= 1, last=i == len(points) - 2):
+                return True, "an obstacle blocks the remaining path"
+        if self.risk is not None:
+            p = float(self.risk(q_now, scene.now))
+            if p > 0.5:
+                return True, f"p(collision) at the current state is {p:.2f}"
+        return False, ""

@@ -1,0 +1,403 @@
+"""Obstacle shapes <-> ``visualization_msgs/Marker``, and the table of obstacles a node sees.
+
+The tracker publishes its obstacles as markers on ``/damon/obstacles``, the mock camera its
+ground truth on ``/damon/sim/obstacles``, and the planner turns those markers back into
+:class:`damon_ros.core.shapes.Shape` objects it certifies paths against. One module does both
+directions so that the mapping cannot drift apart:
+
+=========  ==========================  ==================================================
+Shape      Marker type                 scale / points
+=========  ==========================  ==================================================
+sphere     SPHERE                      x = y = z = 2 r
+box        CUBE                        full extents, oriented by the pose
+cylinder   CYLINDER                    x = y = 2 r, z = length (along the local z axis)
+points     POINTS                      points in the marker's frame (the hull is the shape)
+=========  ==========================  ==================================================
+
+Reading is strict because a planner that trusts a broken marker can drive the arm into an
+obstacle: NaN anywhere, a size <= 0 or > ``MAX_SIZE_M``, a quaternion that is not unit
+length, an unknown marker type or a wrong frame raise ``ValueError`` naming the marker and
+the problem. Where a marker is more general than a shape, it is read *conservatively*: a
+SPHERE with unequal scales (an ellipsoid) becomes the sphere of its largest semi-axis, a
+CYLINDER with an elliptic section the cylinder of its largest radius, and a SPHERE_LIST the
+hull of a cube around every sphere.
+
+``ObstacleTable`` applies a stream of marker arrays with rviz's semantics (ADD/MODIFY
+replace the obstacle with that ``(ns, id)``, DELETE removes it, DELETEALL removes all of
+them or those of one ``ns``; ``lifetime`` counted from the receive time, 0 = forever) and
+estimates each obstacle's velocity from successive positions, since a marker has no field
+for it. One departure from rviz, for safety: an obstacle outlives its lifetime for as long
+as no newer marker array has arrived. Silence is a gap in perception (a stalled tracker, a
+busy executor), not evidence that the obstacle left; forgetting it there let the planner
+route the arm through a box it had seen 0.5 s before (camera demo, D-001). The gap itself
+is the perception timeout's to handle (`last_update`). No rclpy here: only message classes,
+so the planner core can use it untouched.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Duration, Time
+from geometry_msgs.msg import Point
+from visualization_msgs.msg import Marker
+
+from damon_ros.core.scenario import COLOR_RGB
+from damon_ros.core.shapes import Shape
+
+MAX_SIZE_M = 3.0
+"""Largest size accepted on any axis: nothing that large fits in a Panda's workspace, so a
+bigger value is a unit error (mm for m) or garbage, not an obstacle."""
+
+QUATERNION_TOLERANCE = 1e-3
+"""A marker quaternion must have a norm within this of 1 (rviz rejects worse ones too)."""
+
+POINT_WIDTH_M = 0.01
+"""Display width of POINTS markers written by `shape_to_marker` (not part of the shape)."""
+
+INT32_MAX = 2**31 - 1
+
+TYPE_NAMES = {
+    Marker.ARROW: "ARROW", Marker.CUBE: "CUBE", Marker.SPHERE: "SPHERE",
+    Marker.CYLINDER: "CYLINDER", Marker.LINE_STRIP: "LINE_STRIP", Marker.LINE_LIST: "LINE_LIST",
+    Marker.CUBE_LIST: "CUBE_LIST", Marker.SPHERE_LIST: "SPHERE_LIST", Marker.POINTS: "POINTS",
+    Marker.TEXT_VIEW_FACING: "TEXT_VIEW_FACING", Marker.MESH_RESOURCE: "MESH_RESOURCE",
+    Marker.TRIANGLE_LIST: "TRIANGLE_LIST",
+}
+SHAPE_TYPES = (Marker.SPHERE, Marker.CUBE, Marker.CYLINDER, Marker.POINTS, Marker.SPHERE_LIST)
+
+
+# --- time ------------------------------------------------------------------------------------
+
+
+def to_stamp(seconds: float) -> Time:
+    """A ``builtin_interfaces/Time`` for a non-negative time in seconds."""
+    if not (math.isfinite(seconds) and seconds >= 0.0):
+        raise ValueError(f"stamp {seconds} s must be a finite time >= 0")
+    ns = int(round(seconds * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def stamp_seconds(stamp: Time | Duration) -> float:
+    """Seconds of a ``Time`` or ``Duration`` message."""
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
+def _to_duration(seconds: float) -> Duration:
+    if not (math.isfinite(seconds) and seconds >= 0.0):
+        raise ValueError(f"lifetime_s {seconds} must be a finite number >= 0 (0 = forever)")
+    ns = int(round(seconds * 1e9))
+    return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+# --- Shape -> Marker ---------------------------------------------------------------------------
+
+
+def class_rgba(color: str, alpha: float = 0.8) -> tuple[float, float, float, float]:
+    """Display colour of an HSV colour class (the mock camera's albedo); grey if unknown."""
+    r, g, b = COLOR_RGB.get(color, (128, 128, 128))
+    return (r / 255.0, g / 255.0, b / 255.0, float(alpha))
+
+
+def _check_header(ns: str, id: int, frame_id: str) -> None:
+    if not isinstance(ns, str):
+        raise ValueError(f"marker ns must be a string, got {type(ns).__name__}")
+    if isinstance(id, bool) or not isinstance(id, (int, np.integer)) or not (
+        -INT32_MAX - 1 <= id <= INT32_MAX
+    ):
+        raise ValueError(f"marker id {id!r} must be an int32")
+    if not isinstance(frame_id, str) or not frame_id:
+        raise ValueError(f"marker frame_id {frame_id!r} must be a non-empty string")
+
+
+def _scale(shape: Shape) -> tuple[float, float, float]:
+    if shape.kind == "sphere":
+        return (2.0 * shape.size[0],) * 3
+    if shape.kind == "box":
+        return tuple(shape.size)
+    if shape.kind == "cylinder":
+        return (2.0 * shape.size[0], 2.0 * shape.size[0], shape.size[1])
+    return (POINT_WIDTH_M, POINT_WIDTH_M, 0.0)
+
+
+def _points_extent(points: np.ndarray) -> float:
+    return float(np.max(points.max(axis=0) - points.min(axis=0)))
+
+
+def shape_to_marker(
+    shape: Shape,
+    ns: str,
+    id: int,
+    frame_id: str,
+    stamp: Time | float,
+    lifetime_s: float,
+    rgba: Sequence[float],
+) -> Marker:
+    """An ADD marker drawing ``shape`` (see the module table); ``text`` carries its name.
+
+    ``stamp`` is a ``Time`` message or seconds; ``lifetime_s`` 0 means "until deleted".
+    A shape this module would refuse to read back (size > ``MAX_SIZE_M``) is refused here.
+    """
+    if not isinstance(shape, Shape):
+        raise ValueError(f"shape must be a damon_ros.core.shapes.Shape, got {type(shape).__name__}")
+    _check_header(ns, id, frame_id)
+    color = np.asarray(rgba, dtype=float).reshape(-1)
+    if color.shape != (4,) or not np.all((color >= 0.0) & (color <= 1.0)):
+        raise ValueError(f"rgba {list(rgba)} must be 4 values in [0, 1]")
+    scale = _scale(shape)
+    if shape.kind == "points":
+        extent = _points_extent(shape.points)
+        if extent > MAX_SIZE_M:
+            raise ValueError(f"points shape spans {extent:.3f} m, more than {MAX_SIZE_M} m")
+    elif max(scale) > MAX_SIZE_M:
+        raise ValueError(f"{shape.kind} of scale {list(scale)} exceeds {MAX_SIZE_M} m")
+    marker = Marker(ns=ns, id=int(id), action=Marker.ADD, text=shape.name,
+                    frame_locked=False, lifetime=_to_duration(float(lifetime_s)))
+    marker.header.frame_id = frame_id
+    marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
+    marker.type = {"sphere": Marker.SPHERE, "box": Marker.CUBE, "cylinder": Marker.CYLINDER,
+                   "points": Marker.POINTS}[shape.kind]
+    p, q = shape.position, shape.orientation
+    marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = (float(v) for v in p)
+    o = marker.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    marker.scale.x, marker.scale.y, marker.scale.z = (float(s) for s in scale)
+    c = marker.color
+    c.r, c.g, c.b, c.a = (float(v) for v in color)
+    if shape.kind == "points":
+        marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in shape.points]
+    return marker
+
+
+def delete_marker(ns: str, id: int, frame_id: str, stamp: Time | float) -> Marker:
+    """A DELETE marker: the obstacle ``(ns, id)`` is gone."""
+    _check_header(ns, id, frame_id)
+    marker = Marker(ns=ns, id=int(id), action=Marker.DELETE)
+    marker.header.frame_id = frame_id
+    marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
+    return marker
+
+
+def delete_all_marker(frame_id: str, stamp: Time | float, ns: str = "") -> Marker:
+    """A DELETEALL marker: every obstacle, or every obstacle of ``ns`` when it is given."""
+    _check_header(ns, 0, frame_id)
+    marker = Marker(ns=ns, id=0, action=Marker.DELETEALL)
+    marker.header.frame_id = frame_id
+    marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
+    return marker
+
+
+# --- Marker -> Shape ---------------------------------------------------------------------------
+
+
+def _label(marker: Marker) -> str:
+    return f"marker {marker.ns!r}/{marker.id}"
+
+
+def _pose(marker: Marker) -> tuple[np.ndarray, np.ndarray]:
+    p, o = marker.pose.position, marker.pose.orientation
+    position = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.all(np.isfinite(position)):
+        raise ValueError(f"{_label(marker)}: position {position.tolist()} is not finite")
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(
+            f"{_label(marker)}: orientation {q.tolist()} is not a unit quaternion [x, y, z, w] "
+            f"(norm {norm:.6g})"
+        )
+    return position, q / norm
+
+
+def _sizes(marker: Marker, values: Sequence[float], what: str) -> np.ndarray:
+    s = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(s)):
+        raise ValueError(f"{_label(marker)}: {what} {s.tolist()} is not finite")
+    if np.any(s <= 0.0) or np.any(s > MAX_SIZE_M):
+        raise ValueError(
+            f"{_label(marker)}: {what} {s.tolist()} must be > 0 and <= {MAX_SIZE_M} m"
+        )
+    return s
+
+
+def _marker_points(marker: Marker) -> np.ndarray:
+    if not marker.points:
+        raise ValueError(f"{_label(marker)}: a {TYPE_NAMES[marker.type]} marker needs points")
+    pts = np.array([[p.x, p.y, p.z] for p in marker.points], dtype=float)
+    if not np.all(np.isfinite(pts)):
+        raise ValueError(f"{_label(marker)}: points are not all finite")
+    extent = _points_extent(pts)
+    if extent > MAX_SIZE_M:
+        raise ValueError(f"{_label(marker)}: points span {extent:.3f} m, more than {MAX_SIZE_M} m")
+    return pts
+
+
+_CUBE_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+
+
+def marker_to_shape(marker: Marker, frame_id: str | None = None) -> Shape:
+    """The obstacle an ADD marker describes, in the marker's frame (conservatively; see top).
+
+    ``frame_id``, when given, is the frame the caller works in: a marker in another frame is
+    refused rather than silently misplaced (this package does no TF lookups).
+    """
+    kind = marker.type
+    if kind not in SHAPE_TYPES:
+        name = TYPE_NAMES.get(kind, "unknown")
+        raise ValueError(
+            f"{_label(marker)}: type {kind} ({name}) is not an obstacle shape; expected "
+            "SPHERE, CUBE, CYLINDER, POINTS or SPHERE_LIST"
+        )
+    if frame_id is not None and marker.header.frame_id != frame_id:
+        raise ValueError(
+            f"{_label(marker)}: frame {marker.header.frame_id!r} is not {frame_id!r}"
+        )
+    position, q = _pose(marker)
+    scale = (marker.scale.x, marker.scale.y, marker.scale.z)
+    name = marker.text
+    if kind == Marker.SPHERE:
+        radius = 0.5 * float(_sizes(marker, scale, "scale").max())
+        return Shape("sphere", (radius,), position, q, name=name)
+    if kind == Marker.CUBE:
+        return Shape("box", tuple(_sizes(marker, scale, "scale")), position, q, name=name)
+    if kind == Marker.CYLINDER:
+        s = _sizes(marker, scale, "scale")
+        return Shape("cylinder", (0.5 * float(max(s[0], s[1])), float(s[2])), position, q,
+                     name=name)
+    points = _marker_points(marker)
+    if kind == Marker.SPHERE_LIST:
+        radius = 0.5 * float(_sizes(marker, scale[:1], "scale.x (sphere diameter)")[0])
+        points = (points[:, None, :] + radius * _CUBE_SIGNS[None, :, :]).reshape(-1, 3)
+    return Shape("points", (), position, q, points=points, name=name)
+
+
+# --- the table of current obstacles ----------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class TrackedObstacle:
+    """One obstacle as last received: shape, estimated velocity (m/s, base frame), times.
+
+    ``stamp`` is the marker's header stamp (when the obstacle was *seen*), ``received`` the
+    caller's clock when it arrived, ``expires`` when it will be forgotten (inf: never).
+    """
+
+    ns: str
+    id: int
+    shape: Shape
+    velocity: np.ndarray
+    stamp: float
+    received: float
+    expires: float
+
+    def shape_at(self, t: float) -> Shape:
+        """The shape moved along its velocity to time ``t`` (same clock as ``stamp``)."""
+        return self.shape.moved_to(self.shape.position + self.velocity * (t - self.stamp))
+
+
+class _Entry:
+    """Mutable state of one ``(ns, id)``: the latest obstacle and its position history."""
+
+    def __init__(self) -> None:
+        self.history: deque[tuple[float, np.ndarray]] = deque()
+        self.obstacle: TrackedObstacle | None = None
+
+    def velocity(self, stamp: float, position: np.ndarray, window_s: float) -> np.ndarray:
+        """Least-squares slope of the positions seen in the last ``window_s`` seconds.
+
+        A stamp older than the newest one (clock restart) or further than the window after
+        it (the obstacle was away) starts a new history, so stale motion is never carried.
+        The same stamp again replaces that sample (a republished marker, not a new view).
+        """
+        h = self.history
+        if h and (stamp < h[-1][0] or stamp - h[-1][0] > window_s):
+            h.clear()
+        if h and stamp == h[-1][0]:
+            h.pop()
+        h.append((stamp, position))
+        while h[0][0] < stamp - window_s:
+            h.popleft()
+        if len(h) < 2:
+            return np.zeros(3)
+        t = np.array([s for s, _ in h])
+        p = np.array([x for _, x in h])
+        dt = t - t.mean()
+        return (dt @ (p - p.mean(axis=0))) / float(dt @ dt)
+
+
+class ObstacleTable:
+    """Current obstacles keyed by ``(ns, id)``, kept up to date from marker arrays.
+
+    ``frame_id``: markers in any other frame are refused (None accepts any frame).
+    ``velocity_window_s``: positions within this span (by marker stamp) give the velocity.
+    Times passed as ``now`` are the caller's receive clock (e.g. ROS time in seconds); a
+    marker with a zero stamp is taken as stamped at ``now``.
+    """
+
+    def __init__(self, frame_id: str | None = "panda_link0", velocity_window_s: float = 0.3):
+        if not (math.isfinite(velocity_window_s) and velocity_window_s > 0.0):
+            raise ValueError(f"velocity_window_s {velocity_window_s} must be a positive number")
+        self.frame_id = frame_id
+        self.velocity_window_s = float(velocity_window_s)
+        self._entries: dict[tuple[str, int], _Entry] = {}
+        self.last_update = -math.inf  # receive time of the last array that said anything valid
+
+    def __len__(self) -> int:
+        return sum(1 for e in self._entries.values() if e.obstacle is not None)
+
+    def apply(self, markers: Iterable[Marker], now: float) -> list[str]:
+        """Apply markers in order; return one message per marker that was refused.
+
+        A refused marker changes nothing (the previous obstacle with its key stays until it
+        expires), so one bad marker cannot erase or corrupt the others of its array.
+        """
+        if not math.isfinite(now):
+            raise ValueError(f"now {now} must be a finite time")
+        errors = []
+        markers = list(markers)
+        for marker in markers:
+            try:
+                self._apply_one(marker, float(now))
+            except ValueError as exc:
+                errors.append(str(exc))
+        if len(errors) < len(markers) or not markers:  # an empty array says "nothing there"
+            self.last_update = float(now)
+        return errors
+
+    def _apply_one(self, marker: Marker, now: float) -> None:
+        key = (marker.ns, int(marker.id))
+        if marker.action == Marker.DELETEALL:
+            self._entries = {k: e for k, e in self._entries.items()
+                             if marker.ns and k[0] != marker.ns}
+        elif marker.action == Marker.DELETE:
+            self._entries.pop(key, None)
+        elif marker.action == Marker.ADD:  # MODIFY has the same value (0) in ROS 2
+            self._add(key, marker, now)
+        else:
+            raise ValueError(f"{_label(marker)}: unknown action {marker.action}")
+
+    def _add(self, key: tuple[str, int], marker: Marker, now: float) -> None:
+        shape = marker_to_shape(marker, self.frame_id)
+        lifetime = stamp_seconds(marker.lifetime)
+        if not (math.isfinite(lifetime) and lifetime >= 0.0):
+            raise ValueError(f"{_label(marker)}: lifetime {lifetime} s must be >= 0")
+        stamp = stamp_seconds(marker.header.stamp) or now
+        entry = self._entries.setdefault(key, _Entry())
+        velocity = entry.velocity(stamp, shape.position, self.velocity_window_s)
+        expires = now + lifetime if lifetime > 0.0 else math.inf
+        entry.obstacle = TrackedObstacle(key[0], key[1], shape, velocity, stamp, now, expires)
+
+    def obstacles(self, now: float) -> list[TrackedObstacle]:
+        """Live obstacles at ``now``, sorted by key. An expired one is dropped for good, but
+        only once a newer array arrived without it (see the module doc)."""
+        self._entries = {k: e for k, e in self._entries.items() if e.obstacle is not None and (
+            e.obstacle.expires > now or e.obstacle.received >= self.last_update)}
+        return [self._entries[k].obstacle for k in sorted(self._entries)]
+
+    def shapes(self, now: float) -> list[Shape]:
+        """The live obstacles' shapes as last seen."""
+        return [o.shape for o in self.obstacles(now)]

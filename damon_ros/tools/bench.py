@@ -1,0 +1,217 @@
+"""``damon-ros bench``: closed-loop benchmark of DAMON and OMPL planners on scenario files.
+
+Every (scenario, planner) run is simulated without ROS by :mod:`damon_ros.simulation.closed_loop`
+(the runtime loop, PID follower and mock arm of the nodes) and written as one JSON line as
+../shared/scenarios/FORMAT.md says; a summary table per scenario family and planner
+follows. MotionBenchMaker problem sets (the tarball or its folder) are static, many-obstacle
+problems with joint goals: there each planner plans once and the path is verified on the
+exact meshes, reporting success and planning time per set — the numbers the arm-planning
+literature compares.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections import defaultdict
+
+import numpy as np
+
+PLANNERS = ("damon", "damon-noreplan", "rrt", "rrtstar", "rrtconnect")
+
+
+class _PlanOnce:
+    """The ``damon-noreplan`` ablation: plan once, never re-route, hold or escape."""
+
+    def __init__(self, runtime) -> None:
+        self.inner = runtime
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def update(self, t, q_now, obstacles, perception_age_s: float = 0.0):
+        if self.inner.state != "executing":
+            return None
+        if np.max(np.abs(np.asarray(q_now) - self.inner.path[-1])) <= \
+                self.inner.config.goal_tolerance_rad:
+            self.inner.state = "reached"
+        return None
+
+
+def make_runtime(name: str, model, fast, seed: int, solve_time: float):
+    from damon_ros.planning.graph_planner import Planner
+    from damon_ros.planning.ompl_baseline import OmplPlanner
+    from damon_ros.planning.reactive import ReactivePlanner
+
+    if name in ("damon", "damon-noreplan"):
+        planner = Planner(model.graph, fast, fast.limits)
+        settings = {"graph_vertices": model.graph.n_vertices, "margin_m": planner.config.margin,
+                    "resolution_rad": planner.config.resolution,
+                    "time_budget_s": planner.config.time_budget_s,
+                    "model": model.directory.name}
+    else:
+        planner = OmplPlanner(name, fast, fast.limits, solve_time=solve_time, seed=seed)
+        settings = planner.settings()
+    planner.warm_up()
+    runtime = ReactivePlanner(planner)
+    return (_PlanOnce(runtime) if name == "damon-noreplan" else runtime), settings
+
+
+def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
+    from damon_ros.core.robot import Robot
+    from damon_ros.simulation.closed_loop import SimConfig, run_scenario
+
+    fast, mesh = Robot("fast"), Robot("mesh")
+    config = SimConfig(perception=args.perception, perception_latency=args.latency,
+                       perception_noise=args.noise, seed=args.seed)
+    records = []
+    for scenario in scenarios:
+        for name in planners:
+            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time)
+            t0 = time.perf_counter()
+            try:
+                record = run_scenario(scenario, runtime, name, mesh, fast, config).as_json()
+            except Exception as exc:  # one broken run must not stop the benchmark
+                record = {"scenario": scenario.name, "planner": name, "success": False,
+                          "error": f"run failed: {exc!r}"}
+            record.update(family=scenario.family, dynamic=scenario.is_dynamic,
+                          planner_settings=settings, perception=args.perception,
+                          wall_time_s=round(time.perf_counter() - t0, 3))
+            records.append(record)
+            out.write(json.dumps(record) + "\n")
+            out.flush()
+            if not args.quiet:
+                print(f"  {scenario.name:<10} {name:<15} "
+                      f"{'ok  ' if record.get('success') else 'FAIL'} "
+                      f"T={record.get('total_time_s') or float('nan'):.2f}s "
+                      f"{record.get('error') or ''}", file=sys.stderr)
+    return records
+
+
+def run_mbm(path, planners, model, out, args) -> list[dict]:
+    """Plan once per MotionBenchMaker problem; verify the path on the exact meshes."""
+    from damon_ros.core.robot import Robot
+    from damon_ros.tools.mbm import load_problems
+
+    fast, mesh = Robot("fast"), Robot("mesh")
+    records = []
+    for set_name, scenario in load_problems(path, fast, args.per_set):
+        if isinstance(scenario, Exception):
+            record = {"scenario": str(getattr(scenario, "source", "?")), "set": set_name,
+                      "error": str(scenario), "success": False}
+            out.write(json.dumps(record) + "\n")
+            records.append(record)
+            continue
+        obstacles = scenario.obstacles_at(0.0)
+        for name in planners:
+            if name == "damon-noreplan":
+                continue  # identical to damon when nothing moves
+            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time)
+            t0 = time.perf_counter()
+            result = runtime.planner.plan(scenario.start, scenario.goal.joints, obstacles)
+            elapsed = time.perf_counter() - t0
+            verified = result.success and _mesh_free(mesh, result.path, obstacles)
+            record = {"scenario": scenario.name, "set": set_name, "planner": name,
+                      "success": bool(verified), "planning_time_s": elapsed,
+                      "path_length_rad": result.path_length if result.success else None,
+                      "error": None if verified else (result.reason or "path touches meshes"),
+                      "planner_settings": settings}
+            records.append(record)
+            out.write(json.dumps(record) + "\n")
+            out.flush()
+    return records
+
+
+def _mesh_free(mesh, path: np.ndarray, obstacles, step: float = 0.02) -> bool:
+    for a, b in zip(path, path[1:], strict=False):
+        n = max(1, math.ceil(float(np.max(np.abs(b - a))) / step))
+        states = a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)
+        if np.any(mesh.distances(states, obstacles) <= 0.0):
+            return False
+    return True
+
+
+def _pct(values, q: float) -> float:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def summary(records: list[dict]) -> str:
+    """One row per (family or set, planner)."""
+    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for r in records:
+        if "planner" in r:
+            groups[(r.get("family") or r.get("set") or "?", r["planner"])].append(r)
+    header = (f"{'family':<18} {'planner':<15} {'runs':>4} {'success':>8} {'contacts':>8} "
+              f"{'T p50 s':>8} {'path p50':>8} {'plan p50 ms':>11} {'plan p99 ms':>11} "
+              f"{'replan p50 ms':>13} {'replan p99 ms':>13}")
+    lines = [header, "-" * len(header)]
+    for (family, planner), rs in sorted(groups.items()):
+        replans = [x for r in rs for x in (r.get("replan_latency_ms") or [])]
+        plans = [1e3 * r["planning_time_s"] for r in rs if r.get("planning_time_s") is not None]
+        lines.append(
+            f"{family:<18} {planner:<15} {len(rs):>4} "
+            f"{100 * np.mean([bool(r.get('success')) for r in rs]):>7.1f}% "
+            f"{sum(bool(r.get('collided')) for r in rs):>8} "
+            f"{_pct([r.get('total_time_s') for r in rs], 50):>8.2f} "
+            f"{_pct([r.get('path_length_rad') for r in rs], 50):>8.2f} "
+            f"{_pct(plans, 50):>11.1f} {_pct(plans, 99):>11.1f} "
+            f"{_pct(replans, 50):>13.2f} {_pct(replans, 99):>13.2f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from damon_ros.core.scenario import ScenarioError, load_scenario, scenario_files
+    from damon_ros.learning.bundle import DamonModel, ModelError
+    from damon_ros.tools.mbm import is_mbm
+
+    parser = argparse.ArgumentParser(prog="damon-ros bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--scenarios", nargs="+", required=True,
+                        help="scenario files or folders, or a MotionBenchMaker tarball/folder")
+    parser.add_argument("--planners", default="damon,rrtconnect",
+                        help=f"comma-separated, from {','.join(PLANNERS)}")
+    parser.add_argument("--out", default="results.jsonl", help="JSON lines output")
+    parser.add_argument("--model", default=None, help="model directory (default: shipped)")
+    parser.add_argument("--perception", choices=("ideal", "camera"), default="ideal")
+    parser.add_argument("--latency", type=float, default=0.03, help="perception latency (s)")
+    parser.add_argument("--noise", type=float, default=0.0, help="obstacle position noise (m)")
+    parser.add_argument("--solve-time", type=float, default=1.0, help="OMPL budget per plan (s)")
+    parser.add_argument("--per-set", type=int, default=None,
+                        help="at most this many MotionBenchMaker problems per set")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    planners = [p.strip() for p in args.planners.split(",") if p.strip()]
+    unknown = sorted(set(planners) - set(PLANNERS))
+    if unknown:
+        print(f"damon-ros bench: unknown planner(s) {unknown}; choose from {PLANNERS}",
+              file=sys.stderr)
+        return 2
+    try:
+        model = DamonModel.load(args.model)
+    except ModelError as exc:
+        print(f"damon-ros bench: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    records, bad = [], 0
+    with open(args.out, "w") as out:
+        scenarios = []
+        for path in args.scenarios:
+            if is_mbm(path):
+                records += run_mbm(path, planners, model, out, args)
+                continue
+            for file in scenario_files([path]):
+                try:
+                    scenarios.append(load_scenario(file))
+                except ScenarioError as exc:  # reported per file; the others still run
+                    bad += 1
+                    print(f"damon-ros bench: skipped {exc}", file=sys.stderr)
+                    out.write(json.dumps({"scenario": str(file), "error": str(exc)}) + "\n")
+        records += run_scenarios(scenarios, planners, model, out, args)
+    print(summary(records))
+    print(f"\n{len(records)} runs in {time.perf_counter() - t0:.0f} s; {bad} bad scenario "
+          f"file(s); results in {args.out}")
+    return 0
