@@ -10,7 +10,7 @@ same way:
   process id is mixed in because several pytest runs may share this machine at once; with
   ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` nothing from another host can interfere.
 - **Environment.** `node_env` is the caller's environment plus
-  `damon_ros.nodes.common.ros_environment` (domain, localhost discovery, Fast DDS with the
+  `damon_ros.nodes.ros_environment` (domain, localhost discovery, Fast DDS with the
   shared-memory profile), unbuffered Python, uncoloured logs, and a ROS log directory under
   the test's temporary folder instead of ``~/.ros``.
 - **Processes.** `start_node` runs ``python -m damon_ros.nodes.<module> --ros-args ...`` with
@@ -49,7 +49,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 
-from damon_ros.nodes.common import ros_environment, set_realtime_priority
+from damon_ros.ros import topics
+from damon_ros.ros.environment import ros_environment
+from damon_ros.ros.rate_loop import set_realtime_priority
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -441,7 +443,7 @@ def measure_loop_timing(domain_id: int, seconds: float,
     """Run mock_panda and controller closed loop for ``seconds``; their loop-timing lines.
 
     Both start from their ``config/*.yaml`` (plus ``params`` for both); the lines are what
-    each node logs at shutdown (`damon_ros.nodes.common.FixedRateLoop.summary`).
+    each node logs at shutdown (`damon_ros.nodes.FixedRateLoop.summary`).
     """
     with tempfile.TemporaryDirectory() as tmp:
         env = node_env(domain_id, Path(tmp))
@@ -457,7 +459,7 @@ def measure_loop_timing(domain_id: int, seconds: float,
 # ------------------------------------------------------------------ fake planner heartbeat
 
 def start_heartbeat(env: Mapping[str, str], log_path: Path, rate_hz: float = 20.0,
-                    topic: str = "/damon/planner_status") -> subprocess.Popen:
+                    topic: str = topics.PLANNER_STATUS) -> subprocess.Popen:
     """A process that publishes an OK ``DiagnosticArray`` on ``topic`` at ``rate_hz``.
 
     A process of its own, not a timer of the test client: a small process wakes on time on
@@ -500,7 +502,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=15.0)
     parser.add_argument("--priority", type=int, default=None,
                         help="loop-timing: realtime_priority of both nodes (default: YAML)")
-    parser.add_argument("--topic", default="/damon/planner_status")
+    parser.add_argument("--topic", default=topics.PLANNER_STATUS)
     parser.add_argument("--domain", type=int, default=57)
     parser.add_argument("--count", type=int, default=100)
     parser.add_argument("--rate", type=float, default=20.0)

@@ -9,7 +9,7 @@ import numpy as np
 from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
-from damon_ros.planning.graph_planner import Planner, PlanResult
+from damon_ros.planning.graph_planner import GraphPlanner, PlanResult
 from damon_ros.planning.reactive import ReactivePlanner
 from damon_ros.simulation.closed_loop import SimConfig, run_scenario
 from damon_ros.tools.bench import main as bench
@@ -41,7 +41,7 @@ def test_two_scenarios_two_planners_write_every_field(tmp_path, capsys):
     assert "family" in table and "rrtconnect" in table
 
 
-class _Reckless(Planner):
+class _Reckless(GraphPlanner):
     """Deliberately unsafe: always the straight line, never checked."""
 
     def _route(self, q_start, q_goal, scene) -> PlanResult:

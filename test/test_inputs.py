@@ -18,16 +18,17 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker
 
+from damon_ros.core.limits import READY as READY_Q
 from damon_ros.core.limits import joint_limits
-from damon_ros.nodes.common import ProblemLog
 from damon_ros.planning.follower import validate_trajectory
 from damon_ros.ros.inputs import CLOCK_RESET_S, InputError, JointStateReader, goal_problem
 from damon_ros.ros.markers import MAX_SIZE_M, ObstacleTable
+from damon_ros.ros.problems import ProblemLog
 
+READY = READY_Q.tolist()  # a list: the cases below splice it
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 LIM = joint_limits("panda")
 FRAME = "panda_link0"
-READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 any_float = st.floats(allow_nan=True, allow_infinity=True, width=64)
 PROPERTY = settings(max_examples=150, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.too_slow])

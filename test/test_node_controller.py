@@ -26,11 +26,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from damon_ros.core.limits import joint_limits
+from damon_ros.core.limits import READY, joint_limits
+from damon_ros.ros import topics
 
 CONFIG = rosutil.ROOT / "config"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
-READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 LIMITS = joint_limits("panda")
 JS_TIMEOUT_S = 0.05  # joint_state_timeout_s of config/controller.yaml
 HEARTBEAT_S = 0.5  # planner_heartbeat_timeout_s given to the controller
@@ -101,14 +101,14 @@ def _start_arm(ros: rosutil.RosClient, env: dict, tmp: Path) -> Arm:
                                     {"planner_heartbeat_timeout_s": HEARTBEAT_S}, env,
                                     tmp / "controller.log", params_file=CONFIG / "controller.yaml")
     arm = Arm(ros, None, controller,
-              ros.record(JointState, "/joint_states"),
-              ros.record(Float64MultiArray, "/damon/joint_commands"),
-              ros.record(JointState, "/damon/controller_state"),
-              ros.publisher(JointTrajectory, "/damon/joint_trajectory"))
+              ros.record(JointState, topics.JOINT_STATES),
+              ros.record(Float64MultiArray, topics.JOINT_COMMANDS),
+              ros.record(JointState, topics.CONTROLLER_STATE),
+              ros.publisher(JointTrajectory, topics.JOINT_TRAJECTORY))
     arm.planner = rosutil.start_heartbeat(env, tmp / "planner.log")
-    arm.heartbeats = ros.record(DiagnosticArray, "/damon/planner_status")
+    arm.heartbeats = ros.record(DiagnosticArray, topics.PLANNER_STATUS)
     # The controller alone: its command publisher is up, yet it commands nothing.
-    ros.wait_for_publishers("/damon/joint_commands", 1, 20.0)
+    ros.wait_for_publishers(topics.JOINT_COMMANDS, 1, 20.0)
     ros.spin_for(0.3)
     arm.commands_before_first_state = len(arm.commands)
     arm.mock = rosutil.start_node("mock_panda", None, env, tmp / "mock_panda.log",
@@ -370,7 +370,7 @@ def test_runs_with_its_defaults(tmp_path: Path):
                               tmp_path / "controller.log")
     try:
         with rosutil.RosClient(domain) as ros:
-            assert ros.wait_for_publishers("/damon/joint_commands", 1, 20.0), rosutil.read_log(proc)
+            assert ros.wait_for_publishers(topics.JOINT_COMMANDS, 1, 20.0), rosutil.read_log(proc)
     finally:
         code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
     assert code == 0, log[-4000:]

@@ -24,14 +24,14 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from damon_ros.core.limits import joint_limits
+from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.scenario import load_scenario
+from damon_ros.ros import topics
 
 CONFIG = rosutil.ROOT / "config" / "mock_panda.yaml"
 SCENARIO = Path("/work/shared/scenarios/A-001.yaml")
 if not SCENARIO.exists():
     SCENARIO = rosutil.ROOT.parent / "shared" / "scenarios" / "A-001.yaml"
-READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 LIMITS = joint_limits("panda")
 TIMEOUT_S = 0.1  # command_timeout_s of config/mock_panda.yaml
@@ -81,8 +81,8 @@ def graph(tmp_path_factory):
                               params_file=CONFIG)
     try:
         with rosutil.RosClient(domain) as ros:
-            states = ros.record(JointState, "/joint_states")
-            commands = ros.publisher(Float64MultiArray, "/damon/joint_commands")
+            states = ros.record(JointState, topics.JOINT_STATES)
+            commands = ros.publisher(Float64MultiArray, topics.JOINT_COMMANDS)
             assert ros.spin_until(lambda: len(states) > 20, 20.0), _failure(proc)
             assert ros.wait_for_subscribers(commands, 1, 10.0), _failure(proc)
             yield Graph(ros, proc, states, commands)
@@ -146,7 +146,7 @@ def test_clamps_commands_to_the_velocity_and_acceleration_limits(graph: Graph):
 
 def test_reports_limit_violations_and_late_commands(graph: Graph):
     """/damon/sim/limits: a 10 rad/s command is a velocity violation; 200 Hz are late."""
-    limits = graph.ros.record(DiagnosticArray, "/damon/sim/limits")
+    limits = graph.ros.record(DiagnosticArray, topics.SIM_LIMITS)
     assert graph.ros.spin_until(lambda: len(limits) > 0, 3.0), _failure(graph.proc)
     assert graph.settle()
     graph.stream([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 0.1)
@@ -236,8 +236,8 @@ def test_scenario_start_and_contact_report(tmp_path: Path):
                               env, tmp_path / "mock_panda.log", params_file=CONFIG)
     try:
         with rosutil.RosClient(domain) as ros:
-            states = ros.record(JointState, "/joint_states")
-            contact = ros.record(DiagnosticArray, "/damon/sim/contact")
+            states = ros.record(JointState, topics.JOINT_STATES)
+            contact = ros.record(DiagnosticArray, topics.SIM_CONTACT)
             assert ros.spin_until(lambda: len(contact) > 0, 20.0), _failure(proc)
             np.testing.assert_allclose(states.last.position, scenario.start, atol=1e-12)
             first = contact.messages[0].status[0]
@@ -277,7 +277,7 @@ def test_runs_with_its_defaults(tmp_path: Path):
                               tmp_path / "mock_panda.log")
     try:
         with rosutil.RosClient(domain) as ros:
-            assert ros.wait_for_publishers("/joint_states", 1, 20.0), rosutil.read_log(proc)
+            assert ros.wait_for_publishers(topics.JOINT_STATES, 1, 20.0), rosutil.read_log(proc)
     finally:
         code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
     assert code == 0, log[-4000:]

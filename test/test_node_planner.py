@@ -31,14 +31,15 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
+from damon_ros.core.limits import READY
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
+from damon_ros.ros import topics
 from damon_ros.ros.markers import shape_to_marker
 
 CONFIG = rosutil.ROOT / "config"
 FRAME = "panda_link0"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
-READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])  # mock_panda's start
 PERCEPTION_TIMEOUT_S = 0.5
 PARAMS = {
     "mock_panda": {"rate_hz": 250.0},
@@ -149,12 +150,12 @@ def cell(tmp_path_factory):
     try:
         with rosutil.RosClient(domain) as ros:
             c = Cell(ros, env, tmp, procs,
-                     ros.record(JointState, "/joint_states"),
-                     ros.record(JointTrajectory, "/damon/joint_trajectory"),
-                     ros.record(DiagnosticArray, "/damon/planner_status"),
-                     ros.publisher(PoseStamped, "goal_pose"),
-                     ros.publisher(JointState, "/joint_states"),
-                     ros.publisher(MarkerArray, "/damon/obstacles"))
+                     ros.record(JointState, topics.JOINT_STATES),
+                     ros.record(JointTrajectory, topics.JOINT_TRAJECTORY),
+                     ros.record(DiagnosticArray, topics.PLANNER_STATUS),
+                     ros.publisher(PoseStamped, topics.GOAL_POSE),
+                     ros.publisher(JointState, topics.JOINT_STATES),
+                     ros.publisher(MarkerArray, topics.OBSTACLES))
             ros.node.create_timer(0.05, c.feed)
             for node in ("mock_panda", "controller", "planner"):
                 c.start(node)

@@ -35,15 +35,18 @@ from visualization_msgs.msg import Marker, MarkerArray
 from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.scenario import load_scenario
 from damon_ros.core.shapes import Shape
-from damon_ros.nodes import common, mock_camera, tracker
+from damon_ros.nodes import mock_camera, tracker
 from damon_ros.perception.camera import load_camera
 from damon_ros.perception.tracking import Track
-from damon_ros.ros.markers import ObstacleTable, stamp_seconds, to_stamp
+from damon_ros.ros import topics
+from damon_ros.ros.markers import ObstacleTable
+from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.stamps import stamp_seconds, to_stamp
 from damon_ros.simulation.renderer import render, scene_at
 
 SCENARIOS = public_scenarios_dir()
-COLOR, DEPTH, INFO = tracker.COLOR_TOPIC, tracker.DEPTH_TOPIC, tracker.INFO_TOPIC
-OBSTACLES, TRUTH = tracker.OBSTACLES_TOPIC, mock_camera.TRUTH_TOPIC
+COLOR, DEPTH, INFO = topics.COLOR_IMAGE, topics.DEPTH_IMAGE, topics.CAMERA_INFO
+OBSTACLES, TRUTH = topics.OBSTACLES, topics.SIM_OBSTACLES
 FRAME = "panda_link0"
 CLIENT_PRIORITY = 1  # SCHED_FIFO below the nodes' (camera 5, tracker 10): see rosutil.RosClient
 
@@ -155,7 +158,7 @@ def test_render_settings_overrides_and_a_calibration_file_without_mock_render(tm
 
 def test_problem_log_logs_each_kind_once_per_period():
     lines, now = [], [0.0]
-    log = common.ProblemLog(lines.append, every_s=10.0, clock=lambda: now[0])
+    log = ProblemLog(lines.append, every_s=10.0, clock=lambda: now[0])
     assert log.report("colour image encoding 'bgra8' is not supported")
     assert not log.report("colour image encoding 'bgra8' is not supported")
     assert log.report("depth image is 320x240 but camera_info says 640x480")  # another kind

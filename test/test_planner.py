@@ -10,7 +10,7 @@ from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.bundle import DamonModel
-from damon_ros.planning.graph_planner import Planner, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PoseGoal
 from damon_ros.planning.reactive import ReactivePlanner, swept
 
 SCENARIOS = load_public_scenarios()
@@ -27,8 +27,8 @@ def robots() -> tuple[Robot, Robot]:
 
 
 @pytest.fixture()
-def planner(model, robots) -> Planner:
-    p = Planner(model.graph, robots[0], joint_limits("panda"))
+def planner(model, robots) -> GraphPlanner:
+    p = GraphPlanner(model.graph, robots[0], joint_limits("panda"))
     p.warm_up()
     return p
 

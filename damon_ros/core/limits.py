@@ -10,6 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+"""Franka's "ready" posture: mock_panda's start, IK's default seed, every test's home.
+Within the limits of both profiles."""
+
 # Franka Control Interface documentation, "Limits for Panda" and "Limits for Franka Research 3".
 _PROFILES = {
     "panda": {

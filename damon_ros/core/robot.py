@@ -35,12 +35,11 @@ import numpy as np
 import pinocchio as pin
 
 from damon_ros.core import sphere_kernels
-from damon_ros.core.limits import JointLimits, joint_limits
+from damon_ros.core.limits import READY, JointLimits, joint_limits
 from damon_ros.core.shapes import Shape
 
 FINGER_OPENING = 0.04
 TCP_FRAME = "panda_hand_tcp"
-READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 SPHERE_SPACING = 0.04
 """Largest gap (m) between the spheres that cover one cylinder of the fast model; each such
 sphere grows by ``hypot(r, gap / 2) - r`` (≤ 2.2 mm for the Panda's 9 cm links) to cover

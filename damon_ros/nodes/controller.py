@@ -26,7 +26,7 @@ missing input:
 - ``planner_heartbeat_timeout_s`` > 0: while a trajectory is active and no
   ``/damon/planner_status`` arrived for that long, the arm holds (logged once per lapse).
 
-The command loop runs in a `FixedRateLoop` thread (see `common.FixedRateLoop` for why not an
+The command loop runs in a `FixedRateLoop` thread (see `FixedRateLoop` for why not an
 rclpy timer); callbacks only hand data to it under one lock.
 """
 
@@ -47,7 +47,6 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from damon_ros.core.limits import PROFILES, joint_limits
-from damon_ros.nodes import common
 from damon_ros.planning.follower import (
     PIDGains,
     TrajectoryFollower,
@@ -55,14 +54,15 @@ from damon_ros.planning.follower import (
     validate_trajectory,
 )
 from damon_ros.planning.trajectory import METHODS
-from damon_ros.ros.inputs import JointStateReader
+from damon_ros.ros import topics
+from damon_ros.ros.inputs import JointStateReader, joint_names, read_joint_state
+from damon_ros.ros.node_main import node_main
+from damon_ros.ros.parameters import declare
+from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority
+from damon_ros.ros.stamps import stamp_seconds
 
 NAME = "controller"
-TRAJECTORY_TOPIC = "/damon/joint_trajectory"
-STATE_TOPIC = "/joint_states"
-COMMAND_TOPIC = "/damon/joint_commands"
-CONTROLLER_STATE_TOPIC = "/damon/controller_state"
-HEARTBEAT_TOPIC = "/damon/planner_status"
 WARN_EVERY_S = 5.0
 _DEFAULT_GAINS = PIDGains()
 
@@ -104,7 +104,7 @@ class Controller(Node):
         super().__init__(NAME)
         p = self._declare_parameters()
         self.limits = joint_limits(p["limit_profile"])
-        self.names = common.joint_names(p["joints"], p["joint_prefix"])
+        self.names = joint_names(p["joints"], p["joint_prefix"])
         gains = PIDGains(*(np.asarray(p[k], dtype=float) for k in
                            ("p", "i", "d", "i_clamp", "ff_velocity_scale")))
         self._follower = TrajectoryFollower(self.limits, gains, p["rate_hz"],
@@ -115,20 +115,20 @@ class Controller(Node):
         self._q: np.ndarray | None = None
         self._q_time = 0.0  # monotonic arrival time of self._q
         self._reader = JointStateReader(self.names)
-        self._problems = common.ProblemLog(self.get_logger().warning, WARN_EVERY_S)
+        self._problems = ProblemLog(self.get_logger().warning, WARN_EVERY_S)
         self._last_heartbeat = time.monotonic()
         self._stale = False
         self._hb_lapsed = False
         self._ticks = 0
         self._state_every = max(1, round(p["rate_hz"] / p["state_rate_hz"]))
-        self._cmd_pub = self.create_publisher(Float64MultiArray, COMMAND_TOPIC, 10)
-        self._state_pub = self.create_publisher(JointState, CONTROLLER_STATE_TOPIC, 10)
-        self.create_subscription(JointState, STATE_TOPIC, self._on_joint_state, 10)
-        self.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self._on_trajectory, 10)
-        self.create_subscription(DiagnosticArray, HEARTBEAT_TOPIC, self._on_heartbeat, 10)
-        self._loop = common.FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
+        self._cmd_pub = self.create_publisher(Float64MultiArray, topics.JOINT_COMMANDS, 10)
+        self._state_pub = self.create_publisher(JointState, topics.CONTROLLER_STATE, 10)
+        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, 10)
+        self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, 10)
+        self.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, self._on_heartbeat, 10)
+        self._loop = FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
                                           on_error=self._on_loop_error)
-        refused = common.set_realtime_priority(p["realtime_priority"])
+        refused = set_realtime_priority(p["realtime_priority"])
         if refused:
             self.get_logger().warning(refused)
         self._loop.start()
@@ -139,7 +139,7 @@ class Controller(Node):
             f"{f'{self._hb_timeout:g} s' if self._hb_timeout > 0 else 'off'}")
 
     def _declare_parameters(self) -> dict:
-        d = common.declare
+        d = declare
         doc = dict(PARAMETERS)
         g = _DEFAULT_GAINS
         p = {
@@ -166,7 +166,7 @@ class Controller(Node):
 
     def _on_joint_state(self, msg: JointState) -> None:
         t = time.monotonic()
-        q = common.read_joint_state(self._reader, msg, self._problems, self.get_logger().info)
+        q = read_joint_state(self._reader, msg, self._problems, self.get_logger().info)
         if q is None:
             return  # not a measurement: a stream of them ends in the stale stop
         with self._lock:
@@ -186,7 +186,7 @@ class Controller(Node):
             return
         times, pos, vel, acc = trajectory_arrays(msg)
         start = None if msg.header.stamp.sec == 0 and msg.header.stamp.nanosec == 0 \
-            else common.stamp_to_sec(msg.header.stamp)
+            else stamp_seconds(msg.header.stamp)
         reason = validate_trajectory(msg.joint_names, self.names, times, pos, vel, acc,
                                      self.limits, start_time=start, now=self._ros_now())
         if reason is None:
@@ -243,7 +243,7 @@ class Controller(Node):
             self._hb_lapsed = True
             self._follower.hold(q)
             self.get_logger().warning(
-                f"no {HEARTBEAT_TOPIC} for {self._hb_timeout:g} s: trajectory stopped, holding")
+                f"no {topics.PLANNER_STATUS} for {self._hb_timeout:g} s: trajectory stopped, holding")
         elif self._hb_lapsed and self._follower.active:
             self._follower.hold(q)  # still no heartbeat: a new trajectory must not run
         return self._follower.update(now, q)
@@ -259,15 +259,15 @@ class Controller(Node):
         self.get_logger().error(f"control loop stopped: {type(exc).__name__}: {exc}")
 
     def on_shutdown(self) -> None:
-        """Called by `common.run_single_threaded`: stop the loop and report its timing."""
+        """Called by `run_single_threaded`: stop the loop and report its timing."""
         self._loop.stop()
         # ROS may already be shut down (rosout gone): a logger outside the node prints only.
         rclpy.logging.get_logger(f"{NAME}.shutdown").info(self._loop.summary())
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
-    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, Controller, args)
+    """Console entry point (``--help``, one-line errors): see `node_main`."""
+    return node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, Controller, args)
 
 
 if __name__ == "__main__":

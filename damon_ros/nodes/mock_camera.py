@@ -43,9 +43,13 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
 from damon_ros.core.scenario import Scenario, load_scenario
-from damon_ros.nodes import common
 from damon_ros.perception.camera import Camera, load_camera
-from damon_ros.ros.markers import class_rgba, shape_to_marker, to_stamp
+from damon_ros.ros import topics
+from damon_ros.ros.markers import class_rgba, shape_to_marker
+from damon_ros.ros.node_main import node_main
+from damon_ros.ros.parameters import declare
+from damon_ros.ros.rate_loop import set_realtime_priority
+from damon_ros.ros.stamps import to_stamp
 from damon_ros.simulation.renderer import (
     RenderSettings,
     load_render_settings,
@@ -55,10 +59,6 @@ from damon_ros.simulation.renderer import (
 )
 
 NAME = "mock_camera"
-COLOR_TOPIC = "/camera/camera/color/image_raw"
-DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
-INFO_TOPIC = "/camera/camera/color/camera_info"
-TRUTH_TOPIC = "/damon/sim/obstacles"
 WARN_EVERY_S = 5.0
 RENDER_MARGIN_S = 0.001
 """Added to the predicted render time, so that the stamp is rarely passed before publishing."""
@@ -73,7 +73,7 @@ PARAMETERS = (
     ("seed", "noise seed; < 0: the camera file's value"),
     ("time_scale", "scenario seconds per ROS second"),
     ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
-    ("publish_ground_truth", f"publish the scenario's obstacles on {TRUTH_TOPIC}"),
+    ("publish_ground_truth", f"publish the scenario's obstacles on {topics.SIM_OBSTACLES}"),
     ("publish_images", "render and publish the camera images (false: ground truth only, "
                        "for runs without perception)"),
     ("truth_lifetime_frames", "lifetime of a ground-truth marker, in frames"),
@@ -145,14 +145,14 @@ class MockCamera(Node):
         self._render_s: deque[float] = deque([0.5 * self.period], maxlen=30)
         self._frames = 0
         self._overruns = 0
-        self._pub_color = self.create_publisher(Image, COLOR_TOPIC, qos_profile_sensor_data)
-        self._pub_depth = self.create_publisher(Image, DEPTH_TOPIC, qos_profile_sensor_data)
-        self._pub_info = self.create_publisher(CameraInfo, INFO_TOPIC, qos_profile_sensor_data)
-        self._pub_truth = (self.create_publisher(MarkerArray, TRUTH_TOPIC, 10)
+        self._pub_color = self.create_publisher(Image, topics.COLOR_IMAGE, qos_profile_sensor_data)
+        self._pub_depth = self.create_publisher(Image, topics.DEPTH_IMAGE, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos_profile_sensor_data)
+        self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or self._now())
         self.create_timer(self.period, self._frame)
-        refused = common.set_realtime_priority(p["realtime_priority"])
+        refused = set_realtime_priority(p["realtime_priority"])
         if refused:
             self.get_logger().warning(refused)
         s = self.settings
@@ -163,7 +163,7 @@ class MockCamera(Node):
             f"{self.start_time:.3f} s, time scale {self.time_scale:g}")
 
     def _declare_parameters(self) -> dict:
-        d = common.declare
+        d = declare
         doc = dict(PARAMETERS)
         return {
             "scenario": d(self, "scenario", "", doc["scenario"]),
@@ -246,7 +246,7 @@ class MockCamera(Node):
             publisher.publish(msg)
 
     def on_shutdown(self) -> None:
-        """Called by `common.run_single_threaded`: one line of frame statistics."""
+        """Called by `run_single_threaded`: one line of frame statistics."""
         ms = 1e3 * np.asarray(self._render_s)
         self.get_logger().info(
             f"{self._frames} frames published, render p50 {np.median(ms):.1f} ms (last "
@@ -254,8 +254,8 @@ class MockCamera(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
-    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, MockCamera, args)
+    """Console entry point (``--help``, one-line errors): see `node_main`."""
+    return node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, MockCamera, args)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ is `ArmSim`'s; this module only moves data between it and the ROS graph.
 
 Timing: the simulation step and the joint-state publication run in a `FixedRateLoop` thread
 sleeping to absolute deadlines, not in an rclpy timer (a 1 kHz rclpy timer drifts and loses
-ticks while message callbacks run; see `common.FixedRateLoop`). Each step integrates the
+ticks while message callbacks run; see `FixedRateLoop`). Each step integrates the
 real elapsed time, so the mock arm moves in wall-clock time even when a tick is late. The
 executor only copies commands into the model under a lock.
 
@@ -46,17 +46,17 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from damon_ros.core.limits import PROFILES, JointLimits, joint_limits
+from damon_ros.core.limits import READY, PROFILES, JointLimits, joint_limits
 from damon_ros.core.scenario import Scenario, load_scenario
-from damon_ros.nodes import common
+from damon_ros.ros import topics
+from damon_ros.ros.inputs import joint_names
+from damon_ros.ros.node_main import node_main
+from damon_ros.ros.parameters import declare
+from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority
 from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 NAME = "mock_panda"
-READY = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
-COMMAND_TOPIC = "/damon/joint_commands"
-STATE_TOPIC = "/joint_states"
-CONTACT_TOPIC = "/damon/sim/contact"
-LIMITS_TOPIC = "/damon/sim/limits"
 WARN_EVERY_S = 5.0  # a stream of bad commands of one kind: one line per this many seconds
 
 PARAMETERS = (
@@ -149,7 +149,7 @@ class MockPanda(Node):
         self._declare_parameters()
         p = self._params
         limits: JointLimits = joint_limits(p["limit_profile"])
-        self.names = common.joint_names(p["joints"], p["joint_prefix"])
+        self.names = joint_names(p["joints"], p["joint_prefix"])
         scenario = load_scenario(p["scenario"]) if p["scenario"] else None
         q0 = start_positions(p["initial_positions"], scenario)
         self._monitor = (LimitMonitor(limits, 1.0 / p["rate_hz"]) if p["limit_check"]
@@ -157,21 +157,21 @@ class MockPanda(Node):
         self._sim = ArmSim(limits, q0, tau=p["actuator_tau_s"],
                            command_timeout=p["command_timeout_s"], monitor=self._monitor)
         self._lock = threading.Lock()  # the loop thread steps, the executor commands
-        self._problems = common.ProblemLog(self.get_logger().warning, WARN_EVERY_S)
+        self._problems = ProblemLog(self.get_logger().warning, WARN_EVERY_S)
         self._last_command: float | None = None  # monotonic time of the last good command
         self._commanding = False  # inside an episode of fresh commands
         self._last_step: float | None = None
         self._ticks = 0
         self._contact: ContactMonitor | None = None
-        self._pub = self.create_publisher(JointState, STATE_TOPIC, 10)
-        self.create_subscription(Float64MultiArray, COMMAND_TOPIC, self._on_command, 10)
+        self._pub = self.create_publisher(JointState, topics.JOINT_STATES, 10)
+        self.create_subscription(Float64MultiArray, topics.JOINT_COMMANDS, self._on_command, 10)
         self._setup_contact_check(scenario)
-        self._limits_pub = (self.create_publisher(DiagnosticArray, LIMITS_TOPIC, 10)
+        self._limits_pub = (self.create_publisher(DiagnosticArray, topics.SIM_LIMITS, 10)
                             if self._monitor is not None else None)
         self._limits_every = max(1, round(p["rate_hz"]))  # once a second
-        self._loop = common.FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
+        self._loop = FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
                                           on_error=self._on_loop_error)
-        refused = common.set_realtime_priority(p["realtime_priority"])
+        refused = set_realtime_priority(p["realtime_priority"])
         if refused:
             self.get_logger().warning(refused)
         self._loop.start()
@@ -182,13 +182,13 @@ class MockPanda(Node):
             f"({source})")
 
     def _declare_parameters(self) -> None:
-        d = common.declare
+        d = declare
         self._params = {
             "joints": d(self, "joints", Parameter.Type.STRING_ARRAY, PARAMETERS[0][1]),
             "joint_prefix": d(self, "joint_prefix", "panda_", PARAMETERS[1][1]),
             "limit_profile": d(self, "limit_profile", "panda", PARAMETERS[2][1]),
             "rate_hz": d(self, "rate_hz", 1000.0, PARAMETERS[3][1], low=1.0, high=10000.0),
-            "initial_positions": d(self, "initial_positions", READY, PARAMETERS[4][1]),
+            "initial_positions": d(self, "initial_positions", READY.tolist(), PARAMETERS[4][1]),
             "scenario": d(self, "scenario", "", PARAMETERS[5][1]),
             "command_timeout_s": d(self, "command_timeout_s", 0.1, PARAMETERS[6][1],
                                    low=0.001, high=10.0),
@@ -212,7 +212,7 @@ class MockPanda(Node):
         self._contact = ContactMonitor(scenario)
         start = p["scenario_start_time_s"] or self._ros_now()
         self._scenario_start = float(start)
-        self._contact_pub = self.create_publisher(DiagnosticArray, CONTACT_TOPIC, 10)
+        self._contact_pub = self.create_publisher(DiagnosticArray, topics.SIM_CONTACT, 10)
         calls_per_s = p["contact_rate_hz"] * self._contact.calls_per_round
         self._contact_every = max(1, round(p["rate_hz"] / calls_per_s))
 
@@ -312,7 +312,7 @@ class MockPanda(Node):
         self.get_logger().error(f"simulation loop stopped: {type(exc).__name__}: {exc}")
 
     def on_shutdown(self) -> None:
-        """Called by `common.run_single_threaded`: stop the loop and report its timing."""
+        """Called by `run_single_threaded`: stop the loop and report its timing."""
         self._loop.stop()
         # ROS may already be shut down (rosout gone): a logger outside the node prints only.
         log = rclpy.logging.get_logger(f"{NAME}.shutdown")
@@ -323,8 +323,8 @@ class MockPanda(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
-    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, MockPanda, args)
+    """Console entry point (``--help``, one-line errors): see `node_main`."""
+    return node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, MockPanda, args)
 
 
 if __name__ == "__main__":

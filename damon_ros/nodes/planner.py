@@ -3,7 +3,7 @@
 Thin adapter over :class:`damon_ros.planning.reactive.ReactivePlanner`: it parses parameters and
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
 decides. Joint states and obstacle arrays are taken by reader threads of their own
-(`common.TopicReader`: the executor let both go stale), so they keep arriving while a route
+(`TopicReader`: the executor let both go stale), so they keep arriving while a route
 is computed; each batch of obstacle arrays is decided on at once in its reader thread,
 goals, services and the fixed-rate path check in the (single-threaded) executor, one at a
 time (``deciding``).
@@ -30,17 +30,14 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from damon_ros.nodes.common import (
-    ProblemLog,
-    TopicReader,
-    declare,
-    print_help,
-    read_joint_state,
-    run_single_threaded,
-    sec_to_stamp,
-    set_realtime_priority,
-)
-from damon_ros.ros.inputs import JointStateReader, goal_problem
+from damon_ros.ros import topics
+from damon_ros.ros.inputs import JointStateReader, goal_problem, read_joint_state
+from damon_ros.ros.node_main import run_single_threaded
+from damon_ros.ros.parameters import declare, print_help
+from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.rate_loop import set_realtime_priority
+from damon_ros.ros.stamps import to_stamp
+from damon_ros.ros.topic_reader import TopicReader
 
 PARAMETERS = [
     ("model_dir", "model directory ('' = the shipped models/default)"),
@@ -67,7 +64,7 @@ class PlannerNode(Node):
         from damon_ros.core.limits import joint_limits
         from damon_ros.core.robot import Robot
         from damon_ros.learning.bundle import DamonModel
-        from damon_ros.planning.graph_planner import Planner, PlannerConfig
+        from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
         from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
         from damon_ros.ros.markers import ObstacleTable
 
@@ -79,7 +76,7 @@ class PlannerNode(Node):
                                velocity_scale=p["velocity_scale"],
                                acceleration_scale=p["acceleration_scale"],
                                jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"])
-        planner = Planner(self.model.graph, self.robot, self.limits, config)
+        planner = GraphPlanner(self.model.graph, self.robot, self.limits, config)
         planner.warm_up()
         # TCP positions of every vertex, for the graph markers (not on the first goal's path)
         self._vertex_tcp = np.array([self.robot.tcp_pose(q)[0] for q in self.model.graph.q])
@@ -104,23 +101,23 @@ class PlannerNode(Node):
         self.last_event = "idle"
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
-        self.pub_path = self.create_publisher(Path, "/damon/planned_path", 10)
-        self.pub_graph = self.create_publisher(MarkerArray, "/damon/graph_markers", 1)
-        self.pub_status = self.create_publisher(DiagnosticArray, "/damon/planner_status", 10)
-        self.joint_states = TopicReader(self, JointState, "/joint_states",
+        self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
+        self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
+        self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
+        self.joint_states = TopicReader(self, JointState, topics.JOINT_STATES,
                                         p["joint_state_period_s"], self._on_joint_state,
                                         suffix="joint_states")
         self._obstacles_received: float | None = None  # first array of the pending batch
-        self.obstacle_reader = TopicReader(self, MarkerArray, "/damon/obstacles", 0.002,
+        self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES, 0.002,
                                            self._on_obstacles, suffix="obstacles",
                                            qos=qos_profile_sensor_data,
                                            on_drained=self._on_obstacles_drained)
         # goals, services and both timers on one executor thread (`run_single_threaded`):
         # a MultiThreadedExecutor here busy-spun its main thread and ran no goal callback
         # for minutes while the obstacle reader held `deciding` for a route search (soak)
-        self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10)
-        self.create_service(GetPlan, "~/plan", self._on_plan_service)
-        self.create_service(Trigger, "~/stop", self._on_stop_service)
+        self.create_subscription(PoseStamped, topics.GOAL_POSE, self._on_goal, 10)
+        self.create_service(GetPlan, topics.PLAN_SERVICE, self._on_plan_service)
+        self.create_service(Trigger, topics.STOP_SERVICE, self._on_stop_service)
         self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor)
         self.create_timer(0.1, self._publish_status)
         refused = set_realtime_priority(p["realtime_priority"])
@@ -137,7 +134,7 @@ class PlannerNode(Node):
             ("joint_prefix", "panda_", "joint name prefix", None, None),
             ("limit_profile", "panda", "panda | fr3", None, None),
             ("base_frame", "panda_link0", "frame of goals, obstacles and paths", None, None),
-            ("trajectory_topic", "/damon/joint_trajectory", "trajectory output", None, None),
+            ("trajectory_topic", topics.JOINT_TRAJECTORY, "trajectory output", None, None),
             ("margin", 0.01, "clearance λ (m) over the conservative model", 0.0, 0.5),
             ("resolution", 0.02, "rad between checked states", 0.001, 0.1),
             ("velocity_scale", 0.9, "fraction of the velocity limits", 0.01, 1.0),
@@ -344,11 +341,11 @@ class PlannerNode(Node):
         }
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
-        msg.header.stamp = sec_to_stamp(self._now())
+        msg.header.stamp = to_stamp(self._now())
         self.pub_status.publish(msg)
 
     def on_shutdown(self) -> None:
-        """Called by `common.run_single_threaded`: stop the reader threads."""
+        """Called by `run_single_threaded`: stop the reader threads."""
         self.joint_states.close()
         self.obstacle_reader.close()
 

@@ -44,7 +44,6 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
-from damon_ros.nodes import common
 from damon_ros.perception.camera import Camera, load_camera
 from damon_ros.perception.tracking import (
     COLOR_ENCODINGS,
@@ -56,13 +55,15 @@ from damon_ros.perception.tracking import (
     decode_depth,
     load_tracker_config,
 )
-from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker, stamp_seconds
+from damon_ros.ros import topics
+from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker
+from damon_ros.ros.node_main import node_main
+from damon_ros.ros.parameters import declare
+from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.rate_loop import set_realtime_priority
+from damon_ros.ros.stamps import stamp_seconds
 
 NAME = "tracker"
-COLOR_TOPIC = "/camera/camera/color/image_raw"
-DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
-INFO_TOPIC = "/camera/camera/color/camera_info"
-OBSTACLES_TOPIC = "/damon/obstacles"
 LATENCY_HISTORY = 3000
 
 PARAMETERS = (
@@ -173,31 +174,31 @@ class TrackerNode(Node):
         self.lifetime_s = p["marker_lifetime_s"] or self.config.max_age_s
         self.publish_partial = p["publish_partial"]
         self.sync = FrameSynchronizer(p["sync_tolerance_s"], p["queue_size"])
-        self.problems = common.ProblemLog(self.get_logger().warning, p["warn_every_s"])
+        self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         self.stats = LatencyStats.empty()
         self.tracker: Tracker | None = None  # built from the first usable camera_info
         self._info_key: tuple | None = None
         self._waiting_logged = False
         self._newest_stamp = -math.inf
         self._shown: set[tuple[str, int]] = set()
-        self._pub = self.create_publisher(MarkerArray, OBSTACLES_TOPIC, 10)
+        self._pub = self.create_publisher(MarkerArray, topics.OBSTACLES, 10)
         qos = qos_profile_sensor_data
-        self.create_subscription(CameraInfo, INFO_TOPIC, self._on_info, qos)
-        self.create_subscription(Image, COLOR_TOPIC, self._on_color, qos)
-        self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, qos)
+        self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, qos)
+        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_color, qos)
+        self.create_subscription(Image, topics.DEPTH_IMAGE, self._on_depth, qos)
         if p["stats_period_s"] > 0.0:
             self._stats_started = time.monotonic()
             self._stats_frames = 0
             self.create_timer(p["stats_period_s"], self._log_stats)
-        refused = common.set_realtime_priority(p["realtime_priority"])
+        refused = set_realtime_priority(p["realtime_priority"])
         if refused:
             self.get_logger().warning(refused)
         self.get_logger().info(
             f"tracking {sorted(self.config.colors)} as {self.config.shape}s in "
-            f"{self.base_frame} on {OBSTACLES_TOPIC}, marker lifetime {self.lifetime_s:g} s")
+            f"{self.base_frame} on {topics.OBSTACLES}, marker lifetime {self.lifetime_s:g} s")
 
     def _declare_parameters(self) -> dict:
-        d = common.declare
+        d = declare
         doc = dict(PARAMETERS)
         return {
             "tracker_config": d(self, "tracker_config", "", doc["tracker_config"]),
@@ -253,7 +254,7 @@ class TrackerNode(Node):
         if self.tracker is None:
             if not self._waiting_logged:
                 self._waiting_logged = True
-                self.get_logger().warning(f"no camera_info on {INFO_TOPIC} yet: dropping "
+                self.get_logger().warning(f"no camera_info on {topics.CAMERA_INFO} yet: dropping "
                                           "frames until it arrives")
             return
         stamp = stamp_seconds(msg.header.stamp)
@@ -304,7 +305,7 @@ class TrackerNode(Node):
                                f"{self.sync.dropped} unpaired frames dropped so far")
 
     def on_shutdown(self) -> None:
-        """Called by `common.run_single_threaded`: the run's statistics in one line."""
+        """Called by `run_single_threaded`: the run's statistics in one line."""
         self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}")
 
 
@@ -313,8 +314,8 @@ EXTRA_HELP = ("ROS parameters with defaults: config/tracker_node.yaml; the track
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point (``--help``, one-line errors): see `common.node_main`."""
-    return common.node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, TrackerNode, args,
+    """Console entry point (``--help``, one-line errors): see `node_main`."""
+    return node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, TrackerNode, args,
                             extra_help=EXTRA_HELP)
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from damon_ros.core.limits import JointLimits
+from damon_ros.core.limits import READY, JointLimits
 from damon_ros.core.robot import IK_LIMIT_MARGIN
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
@@ -109,7 +109,7 @@ class _Query:
     START = -1
     GOAL = -2
 
-    def __init__(self, planner: Planner, q_start, q_goal, scene: Scene):
+    def __init__(self, planner: GraphPlanner, q_start, q_goal, scene: Scene):
         self.p = planner
         self.q_start = q_start
         self.q_goal = q_goal
@@ -159,7 +159,7 @@ class _Query:
         return free
 
 
-class Planner:
+class GraphPlanner:
     """Plans and re-plans Panda motions over a :class:`LatentGraph`.
 
     ``robot`` is a fast (conservative) :class:`damon_ros.core.robot.Robot`; ``risk`` is an optional
@@ -192,8 +192,7 @@ class Planner:
     def warm_up(self) -> None:
         """Run every code path once (kernel compilation, caches, the timing library) so the
         first real goal is planned at full speed, not after seconds of start-up work."""
-        q = self.graph.q[self._safe_ids[0]] if self.graph is not None else np.array(
-            [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+        q = self.graph.q[self._safe_ids[0]] if self.graph is not None else READY
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])

@@ -1,6 +1,6 @@
 """OMPL baselines (RRT, RRT*, RRTConnect) behind the planner's own interface.
 
-They subclass :class:`damon_ros.planning.graph_planner.Planner` and replace only
+They subclass :class:`damon_ros.planning.graph_planner.GraphPlanner` and replace only
 the route search, so the runtime loop, goal resolution (the same IK), certification rules (the same conservative
 fast model, margin and first-segment rule), self-collision rule, shortcutting, time
 parameterisation and controller are identical: what differs is how a route is found.
@@ -15,12 +15,12 @@ import time
 import numpy as np
 
 from damon_ros.core.limits import JointLimits
-from damon_ros.planning.graph_planner import Planner, PlannerConfig, PlanResult, Scene, _Query
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PlanResult, Scene, _Query
 
 ALGORITHMS = {"rrt": "RRT", "rrtstar": "RRTstar", "rrtconnect": "RRTConnect"}
 
 
-class OmplPlanner(Planner):
+class OmplPlanner(GraphPlanner):
     """A sampling-based planner from OMPL; ``solve_time`` bounds one route search (s).
     RRT* uses the whole budget to improve its path; RRT and RRTConnect stop at the first
     solution."""

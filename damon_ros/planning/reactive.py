@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from damon_ros.core.shapes import Shape
-from damon_ros.planning.graph_planner import Planner, PlanResult, Scene
+from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
 
 
 def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
@@ -87,7 +87,7 @@ class RuntimeStats:
 class ReactivePlanner:
     """State machine: ``idle`` → ``executing`` ⇄ ``holding`` → ``reached``."""
 
-    def __init__(self, planner: Planner, config: RuntimeConfig | None = None,
+    def __init__(self, planner: GraphPlanner, config: RuntimeConfig | None = None,
                  risk=None, on_threat=None) -> None:
         self.planner = planner
         self.config = config or RuntimeConfig()
@@ -115,7 +115,7 @@ class ReactivePlanner:
         """Plan to a new goal (replacing any current one). Without fresh obstacle data the
         goal waits (the arm holds) and is planned as soon as data arrives: never blind.
         ``qd_now`` (joint velocities, optional): a moving arm's route starts where it stops
-        (`Planner.braking_point`)."""
+        (`GraphPlanner.braking_point`)."""
         timeout = self.config.perception_timeout_s
         if timeout > 0 and perception_age_s > timeout:
             self.pending_goal = goal

@@ -11,11 +11,13 @@ values. Message classes only, no rclpy, so the checks are tested without a ROS g
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
+
+from damon_ros.ros.problems import ProblemLog
 
 QUATERNION_TOLERANCE = 1e-3
 """A goal quaternion must have a norm within this of 1. A driver that sends (0, 0, 0, 0) or an
@@ -110,3 +112,32 @@ class JointStateReader:
         if back > CLOCK_RESET_S:
             self.clock_resets += 1
         self.last_stamp = stamp
+
+
+def joint_names(joints: Sequence[str] | None, prefix: str) -> list[str]:
+    """The ``joints`` parameter, or ``<prefix>joint1..7`` when it is unset or empty.
+
+    Every node that talks joint vectors takes the same two parameters, so that one switch
+    (``joint_prefix:=fr3_``) moves the whole graph to franka_ros2's names.
+    """
+    names = [str(n) for n in (joints or [])]
+    if not names:
+        return [f"{prefix}joint{i}" for i in range(1, 8)]
+    if len(names) != 7 or len(set(names)) != 7 or not all(names):
+        raise ValueError(f"parameter joints must name 7 distinct joints, got {names}")
+    return names
+
+
+def read_joint_state(reader: JointStateReader, msg, problems: ProblemLog,
+                     log: Callable[[str], None]) -> np.ndarray | None:
+    """`JointStateReader.read` for a node: the positions, or None for a refused message,
+    which is reported (one line per kind); an accepted clock reset is logged."""
+    resets = reader.clock_resets
+    try:
+        q = reader.read(msg)
+    except InputError as exc:
+        problems.report(f"ignored joint state: {exc}")
+        return None
+    if reader.clock_resets != resets:
+        log("joint-state stamps jumped back (clock reset): accepted")
+    return q

@@ -42,12 +42,13 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from builtin_interfaces.msg import Duration, Time
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from visualization_msgs.msg import Marker
 
 from damon_ros.core.scenario import COLOR_RGB
 from damon_ros.core.shapes import Shape
+from damon_ros.ros.stamps import stamp_seconds, to_duration, to_stamp
 
 MAX_SIZE_M = 3.0
 """Largest size accepted on any axis: nothing that large fits in a Panda's workspace, so a
@@ -74,24 +75,10 @@ SHAPE_TYPES = (Marker.SPHERE, Marker.CUBE, Marker.CYLINDER, Marker.POINTS, Marke
 # --- time ------------------------------------------------------------------------------------
 
 
-def to_stamp(seconds: float) -> Time:
-    """A ``builtin_interfaces/Time`` for a non-negative time in seconds."""
-    if not (math.isfinite(seconds) and seconds >= 0.0):
-        raise ValueError(f"stamp {seconds} s must be a finite time >= 0")
-    ns = int(round(seconds * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def stamp_seconds(stamp: Time | Duration) -> float:
-    """Seconds of a ``Time`` or ``Duration`` message."""
-    return stamp.sec + 1e-9 * stamp.nanosec
 
 
-def _to_duration(seconds: float) -> Duration:
-    if not (math.isfinite(seconds) and seconds >= 0.0):
-        raise ValueError(f"lifetime_s {seconds} must be a finite number >= 0 (0 = forever)")
-    ns = int(round(seconds * 1e9))
-    return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 # --- Shape -> Marker ---------------------------------------------------------------------------
@@ -156,7 +143,7 @@ def shape_to_marker(
     elif max(scale) > MAX_SIZE_M:
         raise ValueError(f"{shape.kind} of scale {list(scale)} exceeds {MAX_SIZE_M} m")
     marker = Marker(ns=ns, id=int(id), action=Marker.ADD, text=shape.name,
-                    frame_locked=False, lifetime=_to_duration(float(lifetime_s)))
+                    frame_locked=False, lifetime=to_duration(float(lifetime_s), "lifetime_s"))
     marker.header.frame_id = frame_id
     marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
     marker.type = {"sphere": Marker.SPHERE, "box": Marker.CUBE, "cylinder": Marker.CYLINDER,

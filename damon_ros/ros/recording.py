@@ -16,6 +16,8 @@ from pathlib import Path
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 
+from damon_ros.ros import topics
+
 SEPARATOR = "=" * 80
 _PRIMITIVES = {"double": "float64", "float": "float32", "boolean": "bool", "octet": "byte",
                "int8": "int8", "uint8": "uint8", "int16": "int16", "uint16": "uint16",
@@ -24,17 +26,17 @@ _PRIMITIVES = {"double": "float64", "float": "float32", "boolean": "bool", "octe
 
 # topic -> message type (module, class) recorded by the demo
 DEMO_TOPICS = {
-    "/joint_states": ("sensor_msgs.msg", "JointState"),
-    "/damon/joint_commands": ("std_msgs.msg", "Float64MultiArray"),
-    "/damon/joint_trajectory": ("trajectory_msgs.msg", "JointTrajectory"),
-    "/damon/controller_state": ("sensor_msgs.msg", "JointState"),
-    "/damon/planned_path": ("nav_msgs.msg", "Path"),
-    "/damon/planner_status": ("diagnostic_msgs.msg", "DiagnosticArray"),
-    "/damon/obstacles": ("visualization_msgs.msg", "MarkerArray"),
-    "/damon/sim/obstacles": ("visualization_msgs.msg", "MarkerArray"),
-    "/damon/graph_markers": ("visualization_msgs.msg", "MarkerArray"),
-    "/camera/camera/color/camera_info": ("sensor_msgs.msg", "CameraInfo"),
-    "goal_pose": ("geometry_msgs.msg", "PoseStamped"),
+    topics.JOINT_STATES: ("sensor_msgs.msg", "JointState"),
+    topics.JOINT_COMMANDS: ("std_msgs.msg", "Float64MultiArray"),
+    topics.JOINT_TRAJECTORY: ("trajectory_msgs.msg", "JointTrajectory"),
+    topics.CONTROLLER_STATE: ("sensor_msgs.msg", "JointState"),
+    topics.PLANNED_PATH: ("nav_msgs.msg", "Path"),
+    topics.PLANNER_STATUS: ("diagnostic_msgs.msg", "DiagnosticArray"),
+    topics.OBSTACLES: ("visualization_msgs.msg", "MarkerArray"),
+    topics.SIM_OBSTACLES: ("visualization_msgs.msg", "MarkerArray"),
+    topics.GRAPH_MARKERS: ("visualization_msgs.msg", "MarkerArray"),
+    topics.CAMERA_INFO: ("sensor_msgs.msg", "CameraInfo"),
+    topics.GOAL_POSE: ("geometry_msgs.msg", "PoseStamped"),
 }
 
 
@@ -94,7 +96,7 @@ def message_definition(cls) -> str:
 class BagRecorder:
     """Subscribes to topics on ``node`` and writes every message to an MCAP file."""
 
-    def __init__(self, node, path: str | Path, topics: dict | None = None) -> None:
+    def __init__(self, node, path: str | Path, record: dict | None = None) -> None:
         from mcap.writer import Writer
 
         self._file = open(path, "wb")  # noqa: SIM115 - closed in close()
@@ -102,14 +104,14 @@ class BagRecorder:
         self._writer.start(profile="ros2", library="damon_ros")
         self._channels = {}
         self.count = 0
-        for topic, (module, name) in (topics or DEMO_TOPICS).items():
+        for topic, (module, name) in (record or DEMO_TOPICS).items():
             cls = getattr(importlib.import_module(module), name)
             schema = self._writer.register_schema(name=_type_name(cls), encoding="ros2msg",
                                                   data=message_definition(cls).encode())
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding="cdr", schema_id=schema)
             qos = qos_profile_sensor_data if topic.startswith("/camera") or topic in (
-                "/damon/obstacles",) else 50  # match the publishers' QoS
+                topics.OBSTACLES,) else 50  # match the publishers' QoS
             node.create_subscription(cls, topic, self._callback(topic), qos)
 
     def _callback(self, topic: str):

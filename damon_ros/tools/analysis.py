@@ -57,7 +57,7 @@ def sweep(data, data_meta, codec, gmr_components: int, margin: float, sizes: lis
     from damon_ros.core.robot import Robot
     from damon_ros.learning.gmr import CollisionGMR
     from damon_ros.learning.graph_builder import build_model_graph
-    from damon_ros.planning.graph_planner import Planner
+    from damon_ros.planning.graph_planner import GraphPlanner
     from damon_ros.planning.reactive import ReactivePlanner
     from damon_ros.simulation.closed_loop import SimConfig, run_scenario
 
@@ -70,7 +70,7 @@ def sweep(data, data_meta, codec, gmr_components: int, margin: float, sizes: lis
         gmr = CollisionGMR.fit(graph.z[keep], graph.distance[keep], gmr_components, margin, seed)
         measured_t, predicted_t, measured_r, predicted_r, plan_ms, success = [], [], [], [], [], []
         for scenario in scenarios:
-            planner = Planner(graph, fast, fast.limits)
+            planner = GraphPlanner(graph, fast, fast.limits)
             planner.warm_up()
             runtime = ReactivePlanner(planner)
             record = run_scenario(scenario, runtime, "damon", mesh, fast, SimConfig(seed=seed))
@@ -80,7 +80,7 @@ def sweep(data, data_meta, codec, gmr_components: int, margin: float, sizes: lis
             measured_r.append(record.replans / steps)
             if record.success:
                 measured_t.append(record.total_time_s)
-            first = Planner(graph, fast, fast.limits).plan(
+            first = GraphPlanner(graph, fast, fast.limits).plan(
                 scenario.start, _goal(scenario), scenario.obstacles_at(0.0))
             if first.success:
                 r, t = _route_prediction(gmr, codec, fast, first, scenario.obstacles_at(0.0),

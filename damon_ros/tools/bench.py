@@ -42,12 +42,12 @@ class _PlanOnce:
 
 
 def make_runtime(name: str, model, fast, seed: int, solve_time: float):
-    from damon_ros.planning.graph_planner import Planner
+    from damon_ros.planning.graph_planner import GraphPlanner
     from damon_ros.planning.ompl_baseline import OmplPlanner
     from damon_ros.planning.reactive import ReactivePlanner
 
     if name in ("damon", "damon-noreplan"):
-        planner = Planner(model.graph, fast, fast.limits)
+        planner = GraphPlanner(model.graph, fast, fast.limits)
         settings = {"graph_vertices": model.graph.n_vertices, "margin_m": planner.config.margin,
                     "resolution_rad": planner.config.resolution,
                     "time_budget_s": planner.config.time_budget_s,

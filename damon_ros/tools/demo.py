@@ -20,6 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from damon_ros.ros import topics
+from damon_ros.ros.environment import ros_environment
+
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
 
@@ -80,7 +83,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
-    from damon_ros.nodes.common import ros_environment
     from damon_ros.ros.launch import read_log, start_node, stop_node
 
     env = dict(os.environ, PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0",
@@ -96,7 +98,7 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
                                       "joint_state_timeout_s": 0.1}, None),
         "planner": ("planner", {"model_dir": args.model or "", **(
             {} if args.velocity_scale is None else {"velocity_scale": args.velocity_scale})},
-                    {"/damon/obstacles": "/damon/sim/obstacles"} if args.no_camera else None),
+                    {topics.OBSTACLES: topics.SIM_OBSTACLES} if args.no_camera else None),
         "mock_camera": ("mock_camera", {**common, **truth, "publish_images": not args.no_camera},
                         None),
     }
@@ -154,10 +156,10 @@ def _watch(scenario, start_time: float, procs: dict, out: Path, args) -> dict:
         points = np.array([p.positions for p in msg.points]) if msg.points else np.zeros((0, 7))
         rec.trajectories.append((time.time() - start_time, points))
 
-    node.create_subscription(JointState, "/joint_states", on_joints, 10)
-    node.create_subscription(DiagnosticArray, "/damon/planner_status", on_status, 10)
-    node.create_subscription(JointTrajectory, "/damon/joint_trajectory", on_trajectory, 10)
-    goal_pub = node.create_publisher(PoseStamped, "goal_pose", 10)
+    node.create_subscription(JointState, topics.JOINT_STATES, on_joints, 10)
+    node.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, on_status, 10)
+    node.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, on_trajectory, 10)
+    goal_pub = node.create_publisher(PoseStamped, topics.GOAL_POSE, 10)
     result = {"success": False, "collided": False, "reason": "", "recording": rec,
               "scenario": scenario.name}
     try:

@@ -38,6 +38,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from damon_ros.ros import topics
+from damon_ros.ros.environment import ros_environment
+from damon_ros.ros.stamps import to_stamp
+
 DRIFT_BOUND = 1.10  # last window / first window, p99 re-route latency and each node's RSS
 DRIFT_MIN_WINDOWS = 3  # fewer windows: too short to tell drift from warm-up
 DRIFT_MIN_SAMPLES = 30  # re-routes per window below which its p99 is not compared
@@ -244,7 +248,7 @@ def node_specs(args, scenario: Path, start_time: float) -> dict:
         "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0,
                                       "joint_state_timeout_s": 0.1}, None),
         "planner": ("planner", {"model_dir": args.model or ""},
-                    {"/damon/obstacles": "/damon/sim/obstacles"} if args.no_camera else None),
+                    {topics.OBSTACLES: topics.SIM_OBSTACLES} if args.no_camera else None),
         "mock_camera": ("mock_camera", {**common, "fps": args.fps,
                                         "truth_lifetime_frames": args.fps,  # 1 s
                                         "publish_images": not args.no_camera}, None),
@@ -277,7 +281,6 @@ def monitor_environment(domain: int, out: Path) -> dict[str, str]:
     1 kHz topics over shared memory can hold a cross-process mutex and stall them. An
     observer must not disturb what it observes.
     """
-    from damon_ros.nodes.common import ros_environment
 
     profile = out / "monitor_fastdds_udp.xml"
     profile.write_text(MONITOR_PROFILE)
@@ -288,7 +291,6 @@ def monitor_environment(domain: int, out: Path) -> dict[str, str]:
 
 def run_soak(args, domain: int, out: Path, scenario: Path, goals: list[SoakGoal]) -> dict:
     """Start the graph, monitor it, stop it (always); the result for the report."""
-    from damon_ros.nodes.common import ros_environment
     from damon_ros.ros.launch import start_node, stop_node
 
     env = dict(os.environ, PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0",
@@ -538,20 +540,20 @@ class Monitor:
         self.trajectories = Trajectories()
         self.limit_status = Latest(DiagnosticArray)
         self.planner_status = Latest(DiagnosticArray)
-        frames = ("/damon/sim/obstacles", MarkerArray, 200) if self.args.no_camera else (
-            "/camera/camera/color/camera_info", CameraInfo, best_effort)
+        frames = (topics.SIM_OBSTACLES, MarkerArray, 200) if self.args.no_camera else (
+            topics.CAMERA_INFO, CameraInfo, best_effort)
         self.taps = {
-            "joint_states": Tap(n, JointState, "/joint_states", deep, self.joints),
+            "joint_states": Tap(n, JointState, topics.JOINT_STATES, deep, self.joints),
             "frames": Tap(n, frames[1], frames[0], frames[2]),
-            "obstacles": Tap(n, MarkerArray, "/damon/obstacles", 200),
-            "trajectories": Tap(n, JointTrajectory, "/damon/joint_trajectory", 100,
+            "obstacles": Tap(n, MarkerArray, topics.OBSTACLES, 200),
+            "trajectories": Tap(n, JointTrajectory, topics.JOINT_TRAJECTORY, 100,
                                 self.trajectories),
-            "contact": Tap(n, DiagnosticArray, "/damon/sim/contact", 500, self.contacts),
-            "limits": Tap(n, DiagnosticArray, "/damon/sim/limits", 10, self.limit_status),
-            "status": Tap(n, DiagnosticArray, "/damon/planner_status", 100,
+            "contact": Tap(n, DiagnosticArray, topics.SIM_CONTACT, 500, self.contacts),
+            "limits": Tap(n, DiagnosticArray, topics.SIM_LIMITS, 10, self.limit_status),
+            "status": Tap(n, DiagnosticArray, topics.PLANNER_STATUS, 100,
                           self.planner_status),
         }
-        self.goal_pub = n.create_publisher(PoseStamped, "goal_pose", 10)
+        self.goal_pub = n.create_publisher(PoseStamped, topics.GOAL_POSE, 10)
 
     def close(self) -> None:
         import rclpy
@@ -609,8 +611,8 @@ class Monitor:
 
     def _not_ready(self) -> str:
         missing = [what for what, ok in (
-            ("/joint_states", self.joints.raw is not None),
-            ("/damon/planner_status", self.planner_status.message is not None),
+            (topics.JOINT_STATES, self.joints.raw is not None),
+            (topics.PLANNER_STATUS, self.planner_status.message is not None),
             ("a goal_pose subscriber", self.goal_pub.get_subscription_count() > 0)) if not ok]
         return ", ".join(missing) or "nothing"
 
@@ -643,12 +645,10 @@ class Monitor:
     def _send_goal(self, index: int, t: float) -> None:
         from geometry_msgs.msg import PoseStamped
 
-        from damon_ros.nodes.common import sec_to_stamp
-
         goal = self.goals[index % len(self.goals)]
         msg = PoseStamped()
         msg.header.frame_id = "panda_link0"
-        msg.header.stamp = sec_to_stamp(time.time())
+        msg.header.stamp = to_stamp(time.time())
         msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = goal.position
         o = msg.pose.orientation
         o.x, o.y, o.z, o.w = goal.orientation
