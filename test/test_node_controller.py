@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from damon_ros.core.limits import READY, joint_limits
+from damon_ros.core.limits import joint_limits
 from damon_ros.ros import topics
 
 CONFIG = rosutil.ROOT / "config"

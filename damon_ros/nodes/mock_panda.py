@@ -46,7 +46,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from damon_ros.core.limits import READY, PROFILES, JointLimits, joint_limits
+from damon_ros.core.limits import PROFILES, READY, JointLimits, joint_limits
 from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.ros import topics
 from damon_ros.ros.inputs import joint_names
