@@ -204,9 +204,6 @@ class ReactivePlanner:
         event.reason = result.reason
         return event
 
-    def remaining_path(self) -> np.ndarray:
-        return self.path[self.segment + 1:]
-
     def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str,
                  qd_now: np.ndarray | None = None) -> Event | None:
         t0 = time.perf_counter()
