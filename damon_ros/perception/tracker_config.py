@@ -8,6 +8,7 @@ and a bad value is refused naming its field before any frame is processed.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,16 @@ import numpy as np
 from damon_ros.core.resources import config_file, read_yaml_section
 
 SHAPE_MODES = ("sphere", "box", "auto")
+
+_LOWER_BOUNDS: tuple[tuple[tuple[str, ...], str, Callable[[Any], bool]], ...] = (
+    (("downsample", "min_points", "max_points"), ">= 1", lambda v: int(v) < 1),
+    (("open_kernel_px", "close_kernel_px", "min_area_px", "inflation_m", "sphere_rms_floor_m",
+      "min_depth_m"), ">= 0", lambda v: v < 0),
+    (("max_depth_m", "mad_k", "mad_floor_m", "sphere_rms_ratio", "sphere_width_ratio",
+      "gate_m", "max_age_s", "velocity_window_s", "time_jump_s"), "> 0", lambda v: not v > 0),
+)
+"""``(fields, bound, violates)``: the numeric fields in the order they are checked, the bound
+named in the error, and the test of a value that breaks it."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,18 +63,11 @@ class TrackerConfig:
             raise ValueError("tracker colors: at least one colour class is needed")
         if self.shape not in SHAPE_MODES:
             raise ValueError(f"tracker shape {self.shape!r} must be one of {SHAPE_MODES}")
-        for name in ("downsample", "min_points", "max_points"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"tracker {name} {getattr(self, name)} must be >= 1")
-        for name in ("open_kernel_px", "close_kernel_px", "min_area_px", "inflation_m",
-                     "sphere_rms_floor_m", "min_depth_m"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"tracker {name} {getattr(self, name)} must be >= 0")
-        for name in ("max_depth_m", "mad_k", "mad_floor_m", "sphere_rms_ratio",
-                     "sphere_width_ratio", "gate_m", "max_age_s", "velocity_window_s",
-                     "time_jump_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"tracker {name} {getattr(self, name)} must be > 0")
+        for names, bound, violates in _LOWER_BOUNDS:
+            for name in names:
+                value = getattr(self, name)
+                if violates(value):
+                    raise ValueError(f"tracker {name} {value} must be {bound}")
         if self.min_depth_m >= self.max_depth_m:
             raise ValueError(
                 f"tracker min_depth_m {self.min_depth_m} must be below max_depth_m "
