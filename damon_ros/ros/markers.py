@@ -72,15 +72,6 @@ TYPE_NAMES = {
 SHAPE_TYPES = (Marker.SPHERE, Marker.CUBE, Marker.CYLINDER, Marker.POINTS, Marker.SPHERE_LIST)
 
 
-# --- time ------------------------------------------------------------------------------------
-
-
-
-
-
-
-
-
 # --- Shape -> Marker ---------------------------------------------------------------------------
 
 
