@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
+from config_edits import edited_config
 
 from damon_ros.core.resources import config_file
 from damon_ros.core.scenario import COLOR_RGB, load_public_scenarios
@@ -100,12 +100,8 @@ def test_render_settings_load_from_the_camera_file():
     ],
 )
 def test_bad_camera_files_are_refused_naming_the_field(tmp_path, edit, message):
-    data = yaml.safe_load(config_file("camera.yaml").read_text())
-    edit(data["camera"])
-    path = tmp_path / "camera.yaml"
-    path.write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match=message):
-        load_camera(path)
+        load_camera(edited_config(tmp_path, "camera.yaml", "camera", edit))
 
 
 def test_a_missing_camera_file_is_a_value_error(tmp_path):

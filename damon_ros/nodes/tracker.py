@@ -45,17 +45,16 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
 from damon_ros.perception.camera import Camera, load_camera
-from damon_ros.perception.tracking import (
+from damon_ros.perception.tracker_config import load_tracker_config
+from damon_ros.perception.tracking import Track, Tracker
+from damon_ros.ros import topics
+from damon_ros.ros.images import (
     COLOR_ENCODINGS,
     DEPTH_ENCODINGS,
     FrameSynchronizer,
-    Track,
-    Tracker,
     decode_color,
     decode_depth,
-    load_tracker_config,
 )
-from damon_ros.ros import topics
 from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker
 from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import declare

@@ -37,7 +37,6 @@ so the planner core can use it untouched.
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -48,6 +47,7 @@ from visualization_msgs.msg import Marker
 
 from damon_ros.core.scenario import COLOR_RGB
 from damon_ros.core.shapes import Shape
+from damon_ros.perception.velocity import VelocityWindow
 from damon_ros.ros.stamps import stamp_seconds, to_duration, to_stamp
 
 MAX_SIZE_M = 3.0
@@ -70,15 +70,6 @@ TYPE_NAMES = {
     Marker.TRIANGLE_LIST: "TRIANGLE_LIST",
 }
 SHAPE_TYPES = (Marker.SPHERE, Marker.CUBE, Marker.CYLINDER, Marker.POINTS, Marker.SPHERE_LIST)
-
-
-# --- time ------------------------------------------------------------------------------------
-
-
-
-
-
-
 
 
 # --- Shape -> Marker ---------------------------------------------------------------------------
@@ -287,33 +278,16 @@ class TrackedObstacle:
 
 
 class _Entry:
-    """Mutable state of one ``(ns, id)``: the latest obstacle and its position history."""
+    """Mutable state of one ``(ns, id)``: the latest obstacle and its recent positions."""
 
-    def __init__(self) -> None:
-        self.history: deque[tuple[float, np.ndarray]] = deque()
+    def __init__(self, window_s: float) -> None:
+        self.motion = VelocityWindow(window_s)
         self.obstacle: TrackedObstacle | None = None
 
-    def velocity(self, stamp: float, position: np.ndarray, window_s: float) -> np.ndarray:
-        """Least-squares slope of the positions seen in the last ``window_s`` seconds.
-
-        A stamp older than the newest one (clock restart) or further than the window after
-        it (the obstacle was away) starts a new history, so stale motion is never carried.
-        The same stamp again replaces that sample (a republished marker, not a new view).
-        """
-        h = self.history
-        if h and (stamp < h[-1][0] or stamp - h[-1][0] > window_s):
-            h.clear()
-        if h and stamp == h[-1][0]:
-            h.pop()
-        h.append((stamp, position))
-        while h[0][0] < stamp - window_s:
-            h.popleft()
-        if len(h) < 2:
-            return np.zeros(3)
-        t = np.array([s for s, _ in h])
-        p = np.array([x for _, x in h])
-        dt = t - t.mean()
-        return (dt @ (p - p.mean(axis=0))) / float(dt @ dt)
+    def velocity(self, stamp: float, position: np.ndarray) -> np.ndarray:
+        """Least-squares slope of the positions seen in the last window (zero below two)."""
+        velocity = self.motion.add(stamp, position)
+        return np.zeros(3) if velocity is None else velocity
 
 
 class ObstacleTable:
@@ -373,8 +347,8 @@ class ObstacleTable:
         if not (math.isfinite(lifetime) and lifetime >= 0.0):
             raise ValueError(f"{_label(marker)}: lifetime {lifetime} s must be >= 0")
         stamp = stamp_seconds(marker.header.stamp) or now
-        entry = self._entries.setdefault(key, _Entry())
-        velocity = entry.velocity(stamp, shape.position, self.velocity_window_s)
+        entry = self._entries.setdefault(key, _Entry(self.velocity_window_s))
+        velocity = entry.velocity(stamp, shape.position)
         expires = now + lifetime if lifetime > 0.0 else math.inf
         entry.obstacle = TrackedObstacle(key[0], key[1], shape, velocity, stamp, now, expires)
 

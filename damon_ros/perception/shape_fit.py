@@ -1,0 +1,192 @@
+"""Shape estimation: a blob's depth pixels -> a conservative bounding shape in the base frame.
+
+Each blob's depth pixels are deprojected with K and depth outliers are dropped by a
+median/MAD test (:func:`blob_points`); then a *conservative* bounding shape is estimated
+(:func:`estimate_shape`): a round blob gets a least-squares sphere (the visible cap fixes
+the centre), any other a bound that assumes the hidden depth is at most the largest visible
+width. Everything is inflated by a margin, because the planner certifies paths against
+these shapes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from damon_ros.core.shapes import Shape
+from damon_ros.perception.camera import Camera
+from damon_ros.perception.segmentation import Blob
+from damon_ros.perception.tracker_config import TrackerConfig
+
+MAD_TO_SIGMA = 1.4826
+"""MAD of a normal distribution times this is its standard deviation."""
+
+
+def blob_points(camera: Camera, blob: Blob, config: TrackerConfig) -> np.ndarray:
+    """Optical-frame points of a blob: in range, thinned to ``max_points``, MAD-filtered."""
+    z = blob.depth_mm.astype(np.float64) * 1e-3
+    keep = (z >= config.min_depth_m) & (z <= config.max_depth_m)
+    u, v, z = blob.u[keep], blob.v[keep], z[keep]
+    if z.size > config.max_points:
+        stride = int(math.ceil(z.size / config.max_points))
+        u, v, z = u[::stride], v[::stride], z[::stride]
+    if z.size == 0:
+        return np.empty((0, 3))
+    median = float(np.median(z))
+    mad = float(np.median(np.abs(z - median)))
+    inlier = np.abs(z - median) <= max(config.mad_k * MAD_TO_SIGMA * mad, config.mad_floor_m)
+    fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+    z = z[inlier]
+    return np.stack([(u[inlier] - cx) / fx * z, (v[inlier] - cy) / fy * z, z], axis=1)
+
+
+def fit_sphere(points: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, float, float]:
+    """Least-squares sphere ``(centre, radius, rms residual)`` through points (N >= 4).
+
+    An algebraic fit (linear in centre and ``r^2 - |c|^2``) starts Gauss-Newton on the
+    geometric distance; the visible cap of a sphere seen from outside is close to a
+    hemisphere, which constrains the centre well in all three directions. The 4x4 normal
+    equations are solved directly: the points are centred, so they are well conditioned.
+    Arrays are kept 3xN (rows contiguous) because that is what makes the reductions fast.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(p) < 4:
+        raise ValueError(f"a sphere fit needs at least 4 points, got {len(p)}")
+    q = np.ascontiguousarray(p.T)
+    mean = q.mean(axis=1)
+    q -= mean[:, None]
+    A = np.empty((4, q.shape[1]))  # the transposed design matrix
+    A[:3] = 2.0 * q
+    A[3] = 1.0
+    sol = _solve_normal(A, (q * q).sum(axis=0))
+    if sol is None:
+        raise ValueError("a sphere fit needs points that are not coplanar")
+    centre = sol[:3]
+    radius = math.sqrt(max(sol[3] + centre @ centre, 1e-12))
+    for _ in range(iterations):
+        diff = q - centre[:, None]
+        dist = np.maximum(np.sqrt((diff * diff).sum(axis=0)), 1e-12)
+        A[:3] = diff / dist
+        step = _solve_normal(A, dist - radius)  # residual r_i = dist_i - radius
+        if step is None:
+            break
+        centre, radius = centre + step[:3], radius + step[3]
+    diff = q - centre[:, None]
+    residual = np.sqrt((diff * diff).sum(axis=0)) - radius
+    rms = math.sqrt(float(residual @ residual) / len(residual))
+    return centre + mean, float(abs(radius)), rms
+
+
+def _solve_normal(At: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """Least squares ``A x ~ b`` (given ``A`` transposed) by the normal equations."""
+    try:
+        return np.linalg.solve(At @ At.T, At @ b)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross costs microseconds of dispatch per call)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+def view_basis(camera: Camera, direction: np.ndarray) -> np.ndarray:
+    """Optical-frame axes (columns) ``[side, down, view]`` of a frame looking along ``direction``.
+
+    ``side`` is horizontal in the base frame, so boxes built in this frame stand upright.
+    """
+    view = direction / math.sqrt(direction @ direction)
+    side = _cross(camera.rotation[2], view)  # base z ("up") expressed in the optical frame
+    norm = math.sqrt(side @ side)
+    if norm < 1e-6:  # looking straight up or down
+        side = np.array([1.0, 0.0, 0.0]) - view[0] * view
+        norm = math.sqrt(side @ side)
+    side = side / norm
+    return np.column_stack([side, _cross(view, side), view])
+
+
+class Estimate(NamedTuple):
+    """A detection's bounding shape in the base frame, and whether it was fitted as round."""
+
+    shape: Shape
+    round: bool
+
+
+FIT_POINTS = 300
+"""The sphere fit uses at most about this many points: a cap of a few hundred pixels fixes the
+centre far below a millimetre, and big blobs (near boxes) would otherwise dominate the cost."""
+
+
+def _is_round(config: TrackerConfig, radius: float, rms: float, width: float,
+              centre_depth: float, surface_depth: float) -> bool:
+    """A sphere fit describes the blob: small residual, radius ~ half width, centre behind."""
+    return (
+        rms <= config.sphere_rms_ratio * radius + config.sphere_rms_floor_m
+        and abs(radius - 0.5 * width) <= config.sphere_width_ratio * 0.5 * width
+        and centre_depth > surface_depth
+    )
+
+
+def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: float,
+               config: TrackerConfig) -> tuple[np.ndarray, float] | None:
+    """Centre and radius (reaching every point) of the blob's sphere, or None if not round.
+
+    ``points`` are N x 3 in the optical frame, ``local`` the same as 3 x N view coordinates.
+    """
+    if len(points) < 4:
+        return None
+    stride = max(1, len(points) // FIT_POINTS)
+    try:
+        centre, radius, rms = fit_sphere(points[::stride])
+    except ValueError:
+        return None
+    if not _is_round(config, radius, rms, width, float(centre @ basis[:, 2]),
+                     float(local[2].mean())):
+        return None
+    return centre, max(radius, _reach(local, basis.T @ centre))
+
+
+def _reach(local: np.ndarray, centre: np.ndarray) -> float:
+    """Largest distance from ``centre`` to the 3 x N points ``local``."""
+    diff = local - centre[:, None]
+    return math.sqrt(float(np.max((diff * diff).sum(axis=0))))
+
+
+def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
+                   name: str = "") -> Estimate:
+    """Conservative bounding shape (base frame) of an obstacle seen as optical-frame points.
+
+    Round blobs: the fitted sphere, radius ``max(fit, farthest point) + inflation``. Others:
+    each visible point is extended along its ray by the largest visible width (the hidden
+    depth of a compact obstacle is at most that), and the bound covers both ends: a sphere
+    about the middle of that cloud, or the box of it in the view-aligned frame.
+    """
+    points_t = points.T
+    basis = view_basis(camera, points_t.mean(axis=1))
+    local = basis.T @ points_t  # 3 x N [side, down, view] coordinates
+    low, high = local.min(axis=1), local.max(axis=1)
+    width = float(max(high[0] - low[0], high[1] - low[1]))
+    inflate = config.inflation_m
+    R, t = camera.rotation, camera.position
+    fit = _round_fit(points, local, basis, width, config)
+    if fit is not None:
+        centre, radius = R @ fit[0] + t, fit[1] + inflate
+        if config.shape == "box":
+            return Estimate(Shape("box", (2 * radius,) * 3, centre, name=name), True)
+        return Estimate(Shape("sphere", (radius,), centre, name=name), True)
+    ranges = np.sqrt((points_t * points_t).sum(axis=0))
+    far = local * (1.0 + width / ranges)  # each point pushed back along its ray by width
+    low = np.minimum(low, far.min(axis=1))
+    high = np.maximum(high, far.max(axis=1))
+    mid = 0.5 * (low + high)
+    centre = R @ (basis @ mid) + t
+    if config.shape == "sphere":
+        radius = max(_reach(local, mid), _reach(far, mid)) + inflate
+        return Estimate(Shape("sphere", (radius,), centre, name=name), False)
+    orientation = Rotation.from_matrix(R @ basis).as_quat()
+    size = tuple(high - low + 2.0 * inflate)
+    return Estimate(Shape("box", size, centre, orientation, name=name), False)
