@@ -153,7 +153,8 @@ class MockCamera(Node):
         self._overruns = 0
         self._pub_color = self.create_publisher(Image, topics.COLOR_IMAGE, qos_profile_sensor_data)
         self._pub_depth = self.create_publisher(Image, topics.DEPTH_IMAGE, qos_profile_sensor_data)
-        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO,
+                                               qos_profile_sensor_data)
         self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
