@@ -107,15 +107,15 @@ def build_model_graph(data: dict, data_meta: dict, codec, config: GraphBuildConf
     return graph, stats
 
 
-def load_inputs(data_dir: str | Path, model: Path) -> tuple[dict, dict, dict, object]:
-    """(data, data set sidecar, the model's ``meta.json``, its VAE) for building the graph of
-    the model directory ``model`` that ``damon-ros train`` wrote."""
+def load_inputs(data_dir: str | Path, model: Path) -> tuple[dict, dict, object, dict]:
+    """(data, data set sidecar, the model's VAE, its ``meta.json``) — the inputs of
+    :func:`complete_model` for the model directory ``model`` that ``damon-ros train`` wrote."""
     from damon_ros.learning.dataset import load_dataset
     from damon_ros.learning.vae import load_vae
 
     data, data_meta = load_dataset(data_dir)
     meta = json.loads((model / "meta.json").read_text())
-    return data, data_meta, meta, load_vae(model, meta.get("vae"))
+    return data, data_meta, load_vae(model, meta.get("vae")), meta
 
 
 def complete_model(model: Path, data: dict, data_meta: dict, codec, meta: dict,
