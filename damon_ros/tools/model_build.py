@@ -41,6 +41,13 @@ def _attempt(command: str, work: Callable[[], T],
         return None
 
 
+def _done(out, *parts: str) -> int:
+    """Print a command's one-line summary — its parts joined by "; ", then where the result
+    went — and return the success exit code."""
+    print("; ".join(parts) + f" -> {out}")
+    return 0
+
+
 # ---- collect --------------------------------------------------------------------------
 def collect_main(argv: list[str] | None = None) -> int:
     """``damon-ros collect``: collect a labelled data set."""
@@ -70,12 +77,11 @@ def collect_main(argv: list[str] | None = None) -> int:
     if meta is None:
         return 2
     t, c = meta["timing"], meta["counts"]
-    print(f"{meta['n_samples']} samples, {meta['n_nodes']} obstacle nodes, "
-          f"colliding {c['collision']} ({100 * meta['collision_ratio']:.1f} %), "
-          f"within margin {c['near']} ({100 * meta['near_ratio']:.1f} %); "
-          f"this run {t['samples_this_run']} samples in {t['wall_s_this_run']:.1f} s "
-          f"({t['samples_per_s_this_run']} /s) -> {args.out}")
-    return 0
+    return _done(args.out, f"{meta['n_samples']} samples, {meta['n_nodes']} obstacle nodes, "
+                 f"colliding {c['collision']} ({100 * meta['collision_ratio']:.1f} %), "
+                 f"within margin {c['near']} ({100 * meta['near_ratio']:.1f} %)",
+                 f"this run {t['samples_this_run']} samples in {t['wall_s_this_run']:.1f} s "
+                 f"({t['samples_per_s_this_run']} /s)")
 
 
 # ---- train ----------------------------------------------------------------------------
@@ -116,12 +122,11 @@ def train_main(argv: list[str] | None = None) -> int:
     if stale:
         print(f"damon-ros train: {', '.join(stale)} in {out} belong to the previous VAE; "
               "run damon-ros build-graph again", file=sys.stderr)
-    print(f"trained on {metrics['train_rows']} rows, {metrics['seconds_per_epoch']:.1f} s/epoch;"
-          f" held-out: joints RMSE {metrics['joint_rmse_rad']:.3f} rad, point RMSE "
-          f"{metrics['point_rmse_m']:.3f} m, flag accuracy {metrics['flag_accuracy']:.3f}, "
-          f"latent AUC kNN {metrics['latent_auc_knn']:.4f} / poly3 "
-          f"{metrics['latent_auc_poly3']:.4f} -> {out}")
-    return 0
+    m = metrics
+    return _done(out, f"trained on {m['train_rows']} rows, {m['seconds_per_epoch']:.1f} s/epoch",
+                 f"held-out: joints RMSE {m['joint_rmse_rad']:.3f} rad, point RMSE "
+                 f"{m['point_rmse_m']:.3f} m, flag accuracy {m['flag_accuracy']:.3f}, latent "
+                 f"AUC kNN {m['latent_auc_knn']:.4f} / poly3 {m['latent_auc_poly3']:.4f}")
 
 
 # ---- build-graph ----------------------------------------------------------------------
