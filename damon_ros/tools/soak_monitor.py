@@ -43,7 +43,6 @@ class SoakGoal:
     joints: list[float]  # the IK solution checked here (the planner solves again)
 
 
-
 def cdr_stamp(data: bytes) -> float:
     """header.stamp of a serialised message that starts with a std_msgs/Header (CDR)."""
     sec, nanosec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
