@@ -18,6 +18,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 
 from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.stamps import stamp_seconds
 
 QUATERNION_TOLERANCE = 1e-3
 """A goal quaternion must have a norm within this of 1. A driver that sends (0, 0, 0, 0) or an
@@ -83,7 +84,7 @@ class JointStateReader:
         q = np.asarray(msg.position, dtype=float)[index]
         if not np.all(np.isfinite(q)):
             raise InputError("joint state holds NaN or inf positions")
-        self._check_stamp(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+        self._check_stamp(stamp_seconds(msg.header.stamp))
         return q
 
     def velocities(self, msg: JointState) -> np.ndarray | None:
