@@ -10,10 +10,16 @@ from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.bundle import DamonModel
-from damon_ros.planning.graph_planner import GraphPlanner, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
 from damon_ros.planning.reactive import ReactivePlanner, swept
 
 SCENARIOS = load_public_scenarios()
+TEST_CONFIG = PlannerConfig(time_budget_s=60.0)
+"""The node's 0.25 s wall-clock budget is a latency target of the node (benchmarks and the
+soak measure it); on a loaded 2-core machine it ran out on A-002 and D-002 ("no certified
+route ... within the time budget"). Here the search is bounded by what does not depend on
+the machine's speed, ``max_lazy_iterations`` and the ``widen`` steps, so a test asserts
+what the planner finds, not how fast this machine is today."""
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +34,7 @@ def robots() -> tuple[Robot, Robot]:
 
 @pytest.fixture()
 def planner(model, robots) -> GraphPlanner:
-    p = GraphPlanner(model.graph, robots[0], joint_limits("panda"))
+    p = GraphPlanner(model.graph, robots[0], joint_limits("panda"), TEST_CONFIG)
     p.warm_up()
     return p
 
