@@ -26,6 +26,7 @@ import numpy as np
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment, ros_environment
+from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
@@ -182,11 +183,14 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
             result["reason"] = "could not start the scenario clock (see the logs in " f"{out})"
             return result
         clock["start"] = start_time
+        cpu_before = _cpu(procs)
         _spin_until(executor, lambda: False, start_time, procs)  # scenario clock starts now
         goal_pub.publish(_goal_message(scenario, node))
         t_goal = time.time()
         result["goal_delay_s"] = t_goal - start_time
         result.update(_follow(executor, scenario, mesh, latest, rec, start_time, t_goal, procs))
+        result["cpu_cores"] = cpu_shares(cpu_before, _cpu(procs), time.time() - start_time)
+        result["load_avg"] = os.getloadavg()[0]
     finally:
         if recorder is not None:
             recorder.close()
@@ -221,6 +225,12 @@ def _start_scenario_clock(node, executor, procs: dict) -> float | None:
     if not done or not all(r.successful for f in futures for r in f.result().results):
         return None
     return start
+
+
+def _cpu(procs: dict) -> dict[str, float]:
+    """CPU seconds used so far by every node and by the demo itself (`cpu_seconds`)."""
+    return {**{name: cpu_seconds(p.pid) for name, p in procs.items()},
+            "demo": cpu_seconds(os.getpid())}
 
 
 def _spin_until(executor, predicate, deadline: float, procs: dict) -> bool:
@@ -297,4 +307,8 @@ def print_summary(result: dict) -> None:
         f"re-route latency    p50 {status.get('replan_latency_p50_ms', 'nan')} ms "
         "(obstacle update → certified trajectory)",
     ]
+    if result.get("cpu_cores"):
+        lines.append("CPU (cores)         " + ", ".join(
+            f"{k} {v:.2f}" for k, v in result["cpu_cores"].items()) +
+            f" (goal → end; load average {result.get('load_avg', float('nan')):.1f})")
     print("\n".join(lines))
