@@ -459,6 +459,7 @@ def _repeat(make_msg, rate_hz: float, topic: str, priority: int) -> int:
 
     from damon_ros.ros.rate_loop import set_realtime_priority
 
+    launch.exit_with_parent()  # a FIFO process must not outlive a killed test
     rclpy.init()
     msg_type, msg = make_msg()
     node = rclpy.create_node("fake_" + topic.strip("/").replace("/", "_"))
