@@ -418,30 +418,56 @@ def measure_loop_timing(domain_id: int, seconds: float,
 
 # ------------------------------------------------------------------ fake planner heartbeat
 
+PLANNER_PRIORITY = 15  # realtime_priority of config/planner.yaml: the fake planner's too
+
+
 def start_heartbeat(env: Mapping[str, str], log_path: Path, rate_hz: float = 20.0,
                     topic: str = topics.PLANNER_STATUS) -> subprocess.Popen:
     """A process that publishes an OK ``DiagnosticArray`` on ``topic`` at ``rate_hz``.
 
     A process of its own, not a timer of the test client: a small process wakes on time on
-    a loaded machine, a busy test process may not. SIGSTOP / SIGCONT make it fall silent
-    and resume exactly; stop it with `stop_node`.
+    a loaded machine, a busy test process may not. It runs SCHED_FIFO at the real planner's
+    priority (where permitted), as the planner does: at normal priority, on a 2-core machine
+    shared with the FIFO 1 kHz nodes and other work, it was measured silent for > 0.5 s, so
+    the controller's watchdog held the arm *before* the test silenced it. SIGSTOP / SIGCONT
+    make it fall silent and resume exactly; stop it with `stop_node`.
     """
     cmd = [sys.executable, str(Path(__file__).resolve()), "_heartbeat", "--rate", str(rate_hz),
-           "--topic", topic]
+           "--topic", topic, "--priority", str(PLANNER_PRIORITY)]
     return launch.start_process(cmd, env, log_path)
 
 
-def _heartbeat(rate_hz: float, topic: str) -> int:
-    """Child process: the fake planner's status messages until SIGINT/SIGTERM."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+def start_commander(env: Mapping[str, str], log_path: Path, velocity: Sequence[float],
+                    rate_hz: float = 200.0, topic: str = topics.JOINT_COMMANDS,
+                    priority: int = 20) -> subprocess.Popen:
+    """A process that publishes the velocity command ``velocity`` on ``topic`` at ``rate_hz``.
+
+    The stand-in for a controller (SCHED_FIFO like one, where permitted) whose stream can be
+    stopped exactly with SIGSTOP: a stream from the busy test process itself had gaps longer
+    than mock_panda's command timeout on a loaded machine. Stop it with `stop_node`.
+    """
+    cmd = [sys.executable, str(Path(__file__).resolve()), "_commander", "--rate", str(rate_hz),
+           "--topic", topic, "--priority", str(priority),
+           "--data", ",".join(repr(float(v)) for v in velocity)]
+    return launch.start_process(cmd, env, log_path)
+
+
+def _repeat(make_msg, rate_hz: float, topic: str, priority: int) -> int:
+    """Child process: publish ``make_msg()``'s message on ``topic`` at ``rate_hz`` until
+    SIGINT/SIGTERM, SCHED_FIFO ``priority`` where permitted (0: normal)."""
     from rclpy.executors import ExternalShutdownException
 
-    launch.exit_with_parent()
+    from damon_ros.ros.rate_loop import set_realtime_priority
+
+    launch.exit_with_parent()  # a FIFO process must not outlive a killed test
     rclpy.init()
-    node = rclpy.create_node("fake_planner")
-    pub = node.create_publisher(DiagnosticArray, topic, 10)
-    msg = DiagnosticArray(status=[DiagnosticStatus(name="fake planner", message="alive")])
+    msg_type, msg = make_msg()
+    node = rclpy.create_node("fake_" + topic.strip("/").replace("/", "_"))
+    pub = node.create_publisher(msg_type, topic, 10)
     node.create_timer(1.0 / rate_hz, lambda: pub.publish(msg))
+    refused = set_realtime_priority(priority) if priority else None
+    if refused:
+        print(refused, flush=True)
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -451,11 +477,29 @@ def _heartbeat(rate_hz: float, topic: str) -> int:
     return 0
 
 
+def _heartbeat(rate_hz: float, topic: str, priority: int = 0) -> int:
+    """Child process: the fake planner's status messages."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    return _repeat(lambda: (DiagnosticArray, DiagnosticArray(
+        status=[DiagnosticStatus(name="fake planner", message="alive")])),
+        rate_hz, topic, priority)
+
+
+def _commander(rate_hz: float, topic: str, priority: int, data: str) -> int:
+    """Child process: one velocity command, repeated."""
+    from std_msgs.msg import Float64MultiArray
+
+    values = [float(v) for v in data.split(",")]
+    return _repeat(lambda: (Float64MultiArray, Float64MultiArray(data=values)),
+                   rate_hz, topic, priority)
+
+
 def _main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python test/rosutil.py",
                                      description="ROS test harness utilities.")
     parser.add_argument("mode", choices=("image-latency", "loop-timing", "_image_pub",
-                                         "_image_sub", "_heartbeat"))
+                                         "_image_sub", "_heartbeat", "_commander"))
     parser.add_argument("--seconds", type=float, default=15.0)
     parser.add_argument("--priority", type=int, default=None,
                         help="loop-timing: realtime_priority of both nodes (default: YAML)")
@@ -464,13 +508,16 @@ def _main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--count", type=int, default=100)
     parser.add_argument("--rate", type=float, default=20.0)
     parser.add_argument("--timeout", type=float, default=30.0)
+    parser.add_argument("--data", default="", help="_commander: comma-separated velocities")
     args = parser.parse_args(argv)
     if args.mode == "_image_pub":
         return _image_publisher(args.domain, args.count, args.rate)
     if args.mode == "_image_sub":
         return _image_subscriber(args.domain, args.count, args.timeout)
     if args.mode == "_heartbeat":
-        return _heartbeat(args.rate, args.topic)
+        return _heartbeat(args.rate, args.topic, args.priority or 0)
+    if args.mode == "_commander":
+        return _commander(args.rate, args.topic, args.priority or 0, args.data)
     if args.mode == "loop-timing":
         params = None if args.priority is None else {"realtime_priority": args.priority}
         for name, line in measure_loop_timing(args.domain, args.seconds, params).items():

@@ -13,7 +13,9 @@ tick + prediction, and if rendering finished early waits for the stamp before pu
 So the picture is exactly the scene at its stamp and no stamp lies in the future; the stamp
 -> obstacle latency measured downstream is transport + tracking, as with a camera whose
 exposure took no time. Scenario time is ``(ROS time - scenario_start_time_s) * time_scale``
-(start = this node's start when 0), the same convention as mock_panda.
+(start = this node's start when 0), the same convention as mock_panda;
+``scenario_start_time_s`` may be set while the node runs (the demo starts the scenario clock
+when it publishes the goal).
 
 Scheduling: ``realtime_priority`` (default 5) runs the node SCHED_FIFO, below the tracker
 (10) and far below the 1 kHz control nodes (20), so that on a loaded machine frames still
@@ -48,7 +50,7 @@ from damon_ros.ros import topics
 from damon_ros.ros.markers import class_rgba, shape_to_marker
 from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import Param, declare_all
+from damon_ros.ros.parameters import Param, accept_at_run_time, declare_all
 from damon_ros.ros.stamps import clock_seconds, to_stamp
 from damon_ros.simulation.renderer import (
     RenderSettings,
@@ -158,6 +160,7 @@ class MockCamera(Node):
         self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
+        accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
         self.create_timer(self.period, self._frame)
         use_realtime_priority(self, p["realtime_priority"])
         s = self.settings
@@ -166,6 +169,12 @@ class MockCamera(Node):
             f"{self.camera.width}x{self.camera.height} at {p['fps']:g} fps, depth noise "
             f"{s.depth_noise_std_m:g} m, dropout {s.dropout:g}, seed {s.seed}, scenario t=0 at "
             f"{self.start_time:.3f} s, time scale {self.time_scale:g}")
+
+    def _set_scenario_start(self, value: float) -> None:
+        """Scenario time 0 moved while running: the demo starts the clock with the goal,
+        once every node is up, instead of guessing how long start-up takes."""
+        self.start_time = float(value or clock_seconds(self))
+        self.get_logger().info(f"scenario t=0 now at {self.start_time:.3f} s")
 
     def scenario_time(self, ros_time: float) -> float:
         return (ros_time - self.start_time) * self.time_scale

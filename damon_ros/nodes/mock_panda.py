@@ -17,7 +17,8 @@ clearance (`damon_ros.core.robot.Robot("mesh")`) between the arm and the scenari
 scenario time is published on ``/damon/sim/contact`` (``diagnostic_msgs/DiagnosticArray``,
 level ERROR on contact) at ``contact_rate_hz``, computed in ~0.2 ms slices inside the loop
 (see `ContactMonitor` for why not in a timer). Scenario time 0 is ``scenario_start_time_s``
-(ROS time, seconds), or this node's start when that is 0.
+(ROS time, seconds), or this node's start when that is 0; it may be set while the node
+runs.
 
 Limit monitor (``limit_check``, on by default): a real Franka stops with a reflex when a
 command breaks its velocity, acceleration or jerk limits or a joint reaches a position
@@ -50,7 +51,7 @@ from damon_ros.ros import topics
 from damon_ros.ros.inputs import joint_names
 from damon_ros.ros.node_loop import start_loop, stop_loop
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import Param, declare_all
+from damon_ros.ros.parameters import Param, accept_at_run_time, declare_all
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import clock_seconds
 from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
@@ -171,6 +172,7 @@ class MockPanda(Node):
         self._pub = self.create_publisher(JointState, topics.JOINT_STATES, 10)
         self.create_subscription(Float64MultiArray, topics.JOINT_COMMANDS, self._on_command, 10)
         self._setup_contact_check(scenario)
+        accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
         self._limits_pub = (self.create_publisher(DiagnosticArray, topics.SIM_LIMITS, 10)
                             if self._monitor is not None else None)
         self._limits_every = max(1, round(p["rate_hz"]))  # once a second
@@ -195,6 +197,11 @@ class MockPanda(Node):
         self._contact_pub = self.create_publisher(DiagnosticArray, topics.SIM_CONTACT, 10)
         calls_per_s = p["contact_rate_hz"] * self._contact.calls_per_round
         self._contact_every = max(1, round(p["rate_hz"] / calls_per_s))
+
+    def _set_scenario_start(self, value: float) -> None:
+        """Scenario time 0 moved while running (as mock_camera's: see there)."""
+        self._scenario_start = float(value or clock_seconds(self))
+        self.get_logger().info(f"scenario t=0 now at {self._scenario_start:.3f} s")
 
     # -- executor side
 

@@ -10,7 +10,7 @@ returns their values; `print_help` prints the same table before any ROS start-up
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -104,3 +104,24 @@ def print_help(prog: str, description: str, parameters: Sequence[Param],
     print(f"\n{description}\n\nparameters: name = default  [range], description "
           f"(the same in {config_file or f'config/{prog}.yaml'}):")
     print("\n".join(help_lines(parameters)))
+
+
+def accept_at_run_time(node: Node, changes: dict[str, Callable[[Any], None]]) -> None:
+    """Let the parameters named in ``changes`` be set while the node runs (``ros2 param set``,
+    a SetParameters call); each new value goes to its function. Every other parameter is
+    refused with a reason: the nodes read their parameters once at start, so a change that
+    was accepted but not applied would lie to whoever set it.
+    """
+    from rcl_interfaces.msg import SetParametersResult
+
+    def on_set(params: list[Parameter]) -> SetParametersResult:
+        refused = [p.name for p in params if p.name not in changes]
+        if refused:
+            return SetParametersResult(successful=False, reason=(
+                f"{', '.join(refused)}: read at start only; settable while running: "
+                f"{', '.join(changes) or 'none'}"))
+        for p in params:
+            changes[p.name](p.value)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(on_set)

@@ -1,15 +1,20 @@
 """``damon-ros demo``: the whole closed loop over real DDS, each node its own process.
 
 mock_panda, controller, planner, mock_camera and tracker start on a private ROS domain;
-once they are all up, the demo publishes the scenario's goal on ``goal_pose`` as a user
-would, watches the arm until the goal is held (or the time limit passes), stops every node
-cleanly and prints a summary. It exits 0 only when the goal was reached and held without
-contact, so scripts can rely on it. Plots and an animation land in ``--out``.
+once they are all up (joint states, planner status and obstacle data flowing), the demo
+starts the scenario clock — ``scenario_start_time_s`` set on mock_panda and mock_camera while
+they run, until then every obstacle waits at its first waypoint — and at that instant
+publishes the scenario's goal on ``goal_pose`` as a user would, so a moving obstacle meets
+the arm as the scenario describes, however long start-up took; then it watches the arm
+until the goal is held (or the time limit passes), stops every node cleanly and prints a
+summary. It exits 0 only when the goal was reached and held without contact, so scripts
+can rely on it. Plots and an animation land in ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import tempfile
@@ -21,6 +26,7 @@ import numpy as np
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment, ros_environment
+from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
@@ -49,7 +55,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo_output", help="folder for plots and the animation")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (1..100)")
     p.add_argument("--startup-s", type=float, default=12.0,
-                   help="seconds the nodes get to start before the scenario clock runs")
+                   help="the nodes get this long (+30 s) to come up; the scenario clock "
+                        "starts with the goal, as soon as they are")
     p.add_argument("--no-plots", action="store_true", help="skip plots and animation")
     p.add_argument("--velocity-scale", type=float, default=None,
                    help="planner velocity_scale (fraction of the velocity limits; default: "
@@ -86,8 +93,9 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
 
     env = node_environment(domain, Path(tempfile.gettempdir()) / "damon_demo_ros_logs")
     os.environ.update(ros_environment(domain))  # the demo's own rclpy joins the same graph
-    start_time = time.time() + args.startup_s
-    common = {"scenario": str(path.resolve()), "scenario_start_time_s": start_time}
+    # Until the demo starts the clock, scenario time is far negative: obstacles wait at
+    # their first waypoint (see `_start_scenario_clock`).
+    common = {"scenario": str(path.resolve()), "scenario_start_time_s": time.time() + 1e6}
     truth = {"truth_lifetime_frames": 30.0}  # ground truth stays valid for 1 s between frames
     nodes = {
         "mock_panda": ("mock_panda", {**common, "contact_check": True}, None),
@@ -107,7 +115,7 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     try:
         for name, (module, params, remaps) in nodes.items():
             procs[name] = start_node(module, params, env, out / f"{name}.log", remaps)
-        return _watch(scenario, start_time, procs, out, args)
+        return _watch(scenario, time.time() + args.startup_s, procs, out, args)
     finally:
         for name, proc in procs.items():
             code = stop_node(proc)
@@ -116,13 +124,14 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
                       file=sys.stderr)
 
 
-def _watch(scenario, start_time: float, procs: dict, out: Path, args) -> dict:
+def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory
+    from visualization_msgs.msg import MarkerArray
 
     from damon_ros.core.robot import Robot
 
@@ -139,6 +148,8 @@ def _watch(scenario, start_time: float, procs: dict, out: Path, args) -> dict:
 
         recorder = BagRecorder(node, args.record)
     latest = {}
+    clock = {"start": math.inf}  # wall time of scenario t = 0, once started
+    obstacle_data = []
 
     def on_joints(msg: JointState) -> None:
         latest["q"] = np.array(msg.position[:7])
@@ -151,24 +162,35 @@ def _watch(scenario, start_time: float, procs: dict, out: Path, args) -> dict:
 
     def on_trajectory(msg: JointTrajectory) -> None:
         points = np.array([p.positions for p in msg.points]) if msg.points else np.zeros((0, 7))
-        rec.trajectories.append((time.time() - start_time, points))
+        rec.trajectories.append((time.time() - clock["start"], points))
 
     node.create_subscription(JointState, topics.JOINT_STATES, on_joints, 10)
     node.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, on_status, 10)
     node.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, on_trajectory, 10)
+    node.create_subscription(MarkerArray, topics.SIM_OBSTACLES if args.no_camera
+                             else topics.OBSTACLES, lambda m: obstacle_data.append(1), 10)
     goal_pub = node.create_publisher(PoseStamped, topics.GOAL_POSE, 10)
     result = {"success": False, "collided": False, "reason": "", "recording": rec,
               "scenario": scenario.name}
     try:
-        ready = _spin_until(executor, lambda: "q" in latest and rec.status, start_time + 30.0,
-                            procs)
+        ready = _spin_until(executor, lambda: "q" in latest and rec.status and obstacle_data,
+                            ready_by + 30.0, procs)
         if not ready:
             result["reason"] = "the nodes did not come up (see the logs in " f"{out})"
             return result
+        start_time = _start_scenario_clock(node, executor, procs)
+        if start_time is None:
+            result["reason"] = "could not start the scenario clock (see the logs in " f"{out})"
+            return result
+        clock["start"] = start_time
+        cpu_before = _cpu(procs)
         _spin_until(executor, lambda: False, start_time, procs)  # scenario clock starts now
         goal_pub.publish(_goal_message(scenario, node))
         t_goal = time.time()
+        result["goal_delay_s"] = t_goal - start_time
         result.update(_follow(executor, scenario, mesh, latest, rec, start_time, t_goal, procs))
+        result["cpu_cores"] = cpu_shares(cpu_before, _cpu(procs), time.time() - start_time)
+        result["load_avg"] = os.getloadavg()[0]
     finally:
         if recorder is not None:
             recorder.close()
@@ -176,6 +198,39 @@ def _watch(scenario, start_time: float, procs: dict, out: Path, args) -> dict:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     return result
+
+
+SIMULATORS = ("mock_panda", "mock_camera")  # the nodes that run on scenario time
+CLOCK_LEAD_S = 0.3  # the clock is set this far ahead, so both nodes have it before t = 0
+
+
+def _start_scenario_clock(node, executor, procs: dict) -> float | None:
+    """Set ``scenario_start_time_s`` = now + CLOCK_LEAD_S on every simulator; that time, or
+    None when one did not accept it within 10 s."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    start = time.time() + CLOCK_LEAD_S
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=start)
+    request = SetParameters.Request(
+        parameters=[Parameter(name="scenario_start_time_s", value=value)])
+    futures = []
+    for name in SIMULATORS:
+        client = node.create_client(SetParameters, f"/{name}/set_parameters")
+        if not _spin_until(executor, client.service_is_ready, time.time() + 10.0, procs):
+            return None
+        futures.append(client.call_async(request))
+    done = _spin_until(executor, lambda: all(f.done() for f in futures), time.time() + 10.0,
+                       procs)
+    if not done or not all(r.successful for f in futures for r in f.result().results):
+        return None
+    return start
+
+
+def _cpu(procs: dict) -> dict[str, float]:
+    """CPU seconds used so far by every node and by the demo itself (`cpu_seconds`)."""
+    return {**{name: cpu_seconds(p.pid) for name, p in procs.items()},
+            "demo": cpu_seconds(os.getpid())}
 
 
 def _spin_until(executor, predicate, deadline: float, procs: dict) -> bool:
@@ -252,4 +307,8 @@ def print_summary(result: dict) -> None:
         f"re-route latency    p50 {status.get('replan_latency_p50_ms', 'nan')} ms "
         "(obstacle update → certified trajectory)",
     ]
+    if result.get("cpu_cores"):
+        lines.append("CPU (cores)         " + ", ".join(
+            f"{k} {v:.2f}" for k, v in result["cpu_cores"].items()) +
+            f" (goal → end; load average {result.get('load_avg', float('nan')):.1f})")
     print("\n".join(lines))

@@ -191,6 +191,40 @@ def rss_mb(pid: int) -> float:
     return math.nan
 
 
+_TICKS_PER_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system, s) a process has used so far, NaN once it is gone.
+
+    From ``/proc/<pid>/stat`` (fields 14 and 15, clock ticks): a difference over a window
+    divided by its length is the process's CPU share in cores (1.0 = one core busy), which
+    is what counts on a 2-core machine, whatever the wall-clock load of the moment.
+    """
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
+    except (OSError, ValueError, IndexError):
+        return math.nan
+
+
+def cpu_shares(before: dict[str, float], after: dict[str, float],
+               seconds: float) -> dict[str, float]:
+    """CPU share (cores) of each process between two `cpu_seconds` samples, and the total."""
+    shares = {name: (after.get(name, math.nan) - t0) / max(seconds, 1e-9)
+              for name, t0 in before.items()}
+    shares["total"] = float(np.nansum(list(shares.values())))
+    return shares
+
+
+def _load_average() -> float:
+    """The 1-minute load average (nan where unknown): printed beside every CPU number."""
+    try:
+        return float(os.getloadavg()[0])
+    except OSError:
+        return math.nan
+
+
 def _percentiles(values: list[float]) -> dict[str, float]:
     if not values:
         return {"n": 0, "p50": math.nan, "p90": math.nan, "p99": math.nan, "max": math.nan}
@@ -396,6 +430,11 @@ class Monitor:
             self.goal.reached_count += 1
             self.goal.times.append(now - self.goal.sent_at)
 
+    def _cpu_now(self) -> dict[str, float]:
+        cpu = {name: cpu_seconds(proc.pid) for name, proc in self.procs.items()}
+        cpu["soak (this monitor)"] = cpu_seconds(os.getpid())
+        return cpu
+
     def _sample_rss(self) -> None:
         for name, proc in self.procs.items():
             self.rss.setdefault(name, []).append(rss_mb(proc.pid))
@@ -420,6 +459,7 @@ class Monitor:
         self.goal.times = []
         self.rss = {}
         self._sample_rss()
+        self._cpu_mark = self._cpu_now()
 
     def _limit_counts(self) -> dict[str, float]:
         msg = self.limit_status.message
@@ -443,6 +483,8 @@ class Monitor:
         row.update(self._dropped())
         row.update(self._latency())
         row.update(self._safety())
+        row["cpu_cores"] = cpu_shares(self._cpu_mark, self._cpu_now(), duration)
+        row["load_avg"] = _load_average()
         row["rss_mb"] = {name: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
                          for name, v in self.rss.items()}
         row["goals_sent"] = self.goal.sent - m["sent"]

@@ -85,11 +85,13 @@ def _drift_checks(rows: list[dict], check) -> None:
 def print_progress(row: dict, windows: int) -> None:
     rr = row["reroute_after_input_ms"]
     rss = ", ".join(f"{k.split(' ')[0]} {v:.0f}" for k, v in row["rss_mb"].items())
+    cpu = ", ".join(f"{k.split(' ')[0]} {v:.2f}" for k, v in row.get("cpu_cores", {}).items())
     print(f"[soak] window {row['window']}/{windows} ({row['t0_s']:.0f}-{row['t1_s']:.0f} s): "
           f"js {row['joint_states_hz']:.0f} Hz, cmd {row['commands_hz']:.0f} Hz, frames "
           f"{row['frames_hz']:.1f} Hz, goals {row['goals_reached']}/{row['goals_sent']}, "
           f"re-routes {rr['n']} p99 {rr['p99']:.0f} ms, contacts {row['contacts']}, "
-          f"violations {row['violations']}, RSS MB {rss}", flush=True)
+          f"violations {row['violations']}, RSS MB {rss}, CPU cores {cpu} (load "
+          f"{row.get('load_avg', math.nan):.1f})", flush=True)
 
 
 def _fmt(value, spec: str = ".1f") -> str:
@@ -110,7 +112,8 @@ def _table(header: list[str], lines: list[list[str]]) -> str:
 
 
 def report_tables(rows: list[dict]) -> list[str]:
-    """Three tables per window: throughput and drops, latency, safety and memory."""
+    """Tables per window: throughput and drops, latency, safety and memory, and each
+    node's CPU share in cores (from /proc/<pid>/stat, with the machine's load average)."""
     if not rows:
         return ["(no window completed)"]
     throughput = _table(
@@ -140,7 +143,12 @@ def report_tables(rows: list[dict]) -> list[str]:
           f"{r['limits']['acceleration_jitter']}/{r['limits']['jerk_jitter']}",
           str(r["limits"]["late"]), *[_fmt(r["rss_mb"].get(n)) for n in names]]
          for r in rows])
-    return [throughput, latency, safety]
+    cpu_names = list(rows[0].get("cpu_cores", {}))
+    cpu = _table(
+        ["win", *[f"CPU {n.split(' ')[0]}" for n in cpu_names], "load avg"],
+        [[str(r["window"]), *[_fmt(r.get("cpu_cores", {}).get(n), ".2f") for n in cpu_names],
+          _fmt(r.get("load_avg"))] for r in rows]) if cpu_names else None
+    return [throughput, latency, safety] + ([cpu] if cpu else [])
 
 
 def _pcts(p: dict) -> str:

@@ -188,6 +188,11 @@ def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
     assert 1.3 < reached < 2.5, reached  # follows the timing, not just the end point
     arm.ros.spin_for(0.5)
     assert np.max(np.abs(arm.q() - goal)) < TOLERANCE  # holds
+    # The trajectory ends 1.5 s after it was sent; "reached" (within TOLERANCE) may come
+    # before that, and a busy test process may still be reading older states: wait for the
+    # controller to report the end, then check it exactly.
+    assert arm.ros.spin_until(lambda: np.allclose(arm.controller_state.last.position, goal,
+                                                  atol=1e-9, rtol=0.0), 3.0)
     held = arm.controller_state.last
     assert list(held.name) == NAMES
     np.testing.assert_allclose(held.position, goal, atol=1e-9)  # desired = goal
@@ -284,7 +289,10 @@ def _silence_the_planner(arm: Arm, goal: np.ndarray) -> float:
     below 0.01 rad/s, both publication times.
     """
     arm.trajectories.publish(trajectory([2.0], [goal], [np.zeros(7)]))
-    arm.ros.spin_for(0.3)
+    # Under way, well above the speed the hold is detected by, before the planner falls
+    # silent: a fixed wait here let a late trajectory start look like a hold at once.
+    assert arm.ros.spin_until(
+        lambda: np.max(np.abs(arm.commands.last.data)) > 0.05, 5.0), arm.logs()
     arm.planner.send_signal(signal.SIGSTOP)  # the planner falls silent, exactly
     try:
         silent = _last_before_silence(arm.ros, arm.heartbeats)

@@ -153,3 +153,25 @@ def test_declare_all_refuses_a_value_out_of_range(ros_context):
             declare_all(node, controller.PARAMETERS)
     finally:
         node.destroy_node()
+
+
+def test_only_the_named_parameters_change_at_run_time(ros_context):
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from damon_ros.ros.parameters import accept_at_run_time, declare_all
+
+    node = Node("run_time_changes", context=ros_context, use_global_arguments=False,
+                enable_rosout=False, start_parameter_services=False)
+    seen = []
+    try:
+        declare_all(node, mock_camera.PARAMETERS)
+        accept_at_run_time(node, {"scenario_start_time_s": seen.append})
+        ok = node.set_parameters([Parameter("scenario_start_time_s", value=123.5)])[0]
+        refused = node.set_parameters([Parameter("fps", value=10.0)])[0]
+        fps = node.get_parameter("fps").value
+    finally:
+        node.destroy_node()
+    assert ok.successful and seen == [123.5]
+    assert not refused.successful and "read at start only" in refused.reason
+    assert fps == 30.0  # unchanged

@@ -93,3 +93,41 @@ def test_cdr_stamp_reads_the_header_of_a_serialised_message():
     msg = JointState(name=["a"], position=[1.0])
     msg.header.stamp.sec, msg.header.stamp.nanosec = 1234, 500_000_000
     assert cdr_stamp(serialize_message(msg)) == 1234.5
+
+
+def test_cpu_seconds_counts_this_process_busy_time_and_nan_once_gone():
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares
+
+    before = cpu_seconds(os.getpid())
+    start = time.process_time()
+    while time.process_time() - start < 0.3:  # CPU time, not wall time: holds under load
+        pass
+    used = cpu_seconds(os.getpid()) - before
+    assert 0.2 < used < 5.0, used
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    assert math.isnan(cpu_seconds(gone.pid))
+    shares = cpu_shares({"a": 1.0, "b": 2.0}, {"a": 1.5, "b": 4.0}, 2.0)
+    assert shares == {"a": 0.25, "b": 1.0, "total": 1.25}
+
+
+def test_report_has_a_cpu_table_per_node():
+    from damon_ros.tools.soak_report import report_tables
+
+    row = {"window": 1, "t0_s": 0.0, "t1_s": 15.0, "joint_states_hz": 1000.0,
+           "commands_hz": 1000.0, "frames_hz": 30.0, "obstacles_hz": 30.0, "goals_sent": 3,
+           "goals_reached": 2, "goal_time_s_p50": 2.0, "trajectories": 4, "holds": 0,
+           "js_skipped": 0, "js_gaps": 0, "js_max_gap_ms": 2.0, "frames_untracked": 0,
+           "reroute_decided_ms": {"n": 0, "p50": 1.0, "p90": 1.0, "p99": 1.0, "max": 1.0},
+           "reroute_after_input_ms": {"n": 0, "p50": 1.0, "p90": 1.0, "p99": 1.0, "max": 1.0},
+           "plan_decided_ms": {"n": 1, "p50": 5.0}, "tracker": {}, "contacts": 0,
+           "min_clearance_m": 0.1, "limits": dict.fromkeys(LIMIT_KEYS, 0) | {"q_outside": 0},
+           "rss_mb": {"planner": 300.0},
+           "cpu_cores": {"planner": 0.12, "mock_panda": 0.31, "total": 0.43}, "load_avg": 3.2}
+    cpu = report_tables([row])[-1]
+    assert "CPU mock_panda" in cpu and "0.31" in cpu and "0.43" in cpu and "3.2" in cpu
