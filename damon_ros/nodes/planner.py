@@ -84,6 +84,9 @@ class PlannerNode(Node):
         from damon_ros.ros.markers import ObstacleTable
 
         p = declare_all(self, PARAMETERS)
+        # Start-up (model, graph, warm-up: ~5 CPU-s) at the node's priority too: at normal
+        # priority, on 2 busy cores, it took 40 s while the 1 kHz loops held the arm.
+        use_realtime_priority(self, p["realtime_priority"])
         self.limits = joint_limits(p["limit_profile"], p["joint_prefix"])
         try:
             self.model = DamonModel.load(p["model_dir"] or None)
@@ -97,7 +100,7 @@ class PlannerNode(Node):
         planner = GraphPlanner(self.model.graph, self.robot, self.limits, config)
         planner.warm_up()
         # TCP positions of every vertex, for the graph markers (not on the first goal's path)
-        self._vertex_tcp = np.array([self.robot.tcp_pose(q)[0] for q in self.model.graph.q])
+        self._vertex_tcp = self.robot.tcp_positions(self.model.graph.q)
         self.runtime = ReactivePlanner(planner, RuntimeConfig(
             prediction_horizon_s=p["prediction_horizon_s"],
             perception_timeout_s=p["perception_timeout_s"]),
@@ -138,7 +141,6 @@ class PlannerNode(Node):
         self.create_service(Trigger, topics.STOP_SERVICE, self._on_stop_service)
         self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor)
         self.create_timer(0.1, self._publish_status)
-        use_realtime_priority(self, p["realtime_priority"])
         self.get_logger().info(
             f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")

@@ -54,9 +54,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="model directory (default: shipped)")
     p.add_argument("--out", default="demo_output", help="folder for plots and the animation")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (1..100)")
-    p.add_argument("--startup-s", type=float, default=12.0,
-                   help="the nodes get this long (+30 s) to come up; the scenario clock "
-                        "starts with the goal, as soon as they are")
+    p.add_argument("--startup-s", type=float, default=90.0,
+                   help="the nodes get this long to come up (a few s on a quiet machine, "
+                        "40 s on 2 busy cores); the scenario clock starts with the goal, as "
+                        "soon as they are")
     p.add_argument("--no-plots", action="store_true", help="skip plots and animation")
     p.add_argument("--velocity-scale", type=float, default=None,
                    help="planner velocity_scale (fraction of the velocity limits; default: "
@@ -174,7 +175,7 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
               "scenario": scenario.name}
     try:
         ready = _spin_until(executor, lambda: "q" in latest and rec.status and obstacle_data,
-                            ready_by + 30.0, procs)
+                            ready_by, procs)
         if not ready:
             result["reason"] = "the nodes did not come up (see the logs in " f"{out})"
             return result

@@ -117,7 +117,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="soak_output", help="folder for logs, scenario, soak.json")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (1..100)")
     p.add_argument("--startup-s", type=float, default=12.0,
-                   help="seconds the nodes get to start before the scenario clock runs")
+                   help="seconds the nodes get to start before the scenario clock runs "
+                        "(slower ones get up to 90 s; the goals start once they are up)")
     p.add_argument("--model", default=None, help="model directory (default: shipped)")
     return p
 

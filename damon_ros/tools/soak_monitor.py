@@ -28,6 +28,7 @@ from damon_ros.tools.soak_report import LIMIT_KEYS, VIOLATIONS, print_progress
 STILL_RAD_S = 0.02  # a goal is reached when the TCP is within tolerance and this still
 SCORE_PERIOD_S = 0.02  # forward kinematics for "reached" at 50 Hz
 RSS_PERIOD_S = 2.0
+READY_TIMEOUT_S = 90.0  # start-up: a few s on a quiet machine, ~40 s on 2 busy cores
 JOINT_PERIOD_S = 1e-3  # mock_panda's rate_hz
 
 
@@ -318,9 +319,9 @@ class Monitor:
 
     def run(self, start_time: float) -> tuple[list[dict], list[str], str]:
         """Wait for the graph, send goals, close a row per window; (rows, crashes, note)."""
-        if not self._wait_ready(start_time + 30.0):
+        if not self._wait_ready(time.time() + READY_TIMEOUT_S):
             return [], self._crashes(), (f"the nodes did not come up within "
-                                         f"{self.args.startup_s + 30.0:.0f} s (missing: "
+                                         f"{READY_TIMEOUT_S:.0f} s (missing: "
                                          f"{self._not_ready()}; see their logs)")
         self._sleep_until(start_time)
         t_first = time.time()
