@@ -99,7 +99,7 @@ def log_lines(proc: subprocess.Popen, needle: str) -> list[str]:
     return [line for line in read_log(proc).splitlines() if needle in line]
 
 
-@dataclass
+@dataclass(repr=False)  # thousands of messages: a failing assert printed them
 class Recorder:
     """Messages of one subscription with their arrival and publication times.
 

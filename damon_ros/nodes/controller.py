@@ -79,7 +79,8 @@ PARAMETERS = (
           "largest integral contribution per joint (rad/s), anti-windup"),
     Param("ff_velocity_scale", tuple(_DEFAULT_GAINS.ff_velocity_scale.tolist()),
           "feed-forward velocity scale per joint"),
-    Param("joint_state_timeout_s", 0.05, "older joint states stop the arm (s)", 0.001, 10.0),
+    Param("joint_state_timeout_s", 0.1, "older joint states stop the arm (s): 3 periods of "
+          "franka_ros2's 30 Hz /joint_states", 0.001, 10.0),
     Param("planner_heartbeat_timeout_s", 0.0,
           "hold when the planner is silent this long; 0: off (s)", 0.0, 3600.0),
     Param("realtime_priority", 20,

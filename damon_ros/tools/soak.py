@@ -232,8 +232,7 @@ def node_specs(args, scenario: Path, start_time: float) -> dict:
     specs = {
         "mock_panda": ("mock_panda", {**common, "contact_check": True, "limit_check": True},
                        None),
-        "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0,
-                                      "joint_state_timeout_s": 0.1}, None),
+        "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0}, None),
         "planner": ("planner", {"model_dir": args.model or ""},
                     {topics.OBSTACLES: topics.SIM_OBSTACLES} if args.no_camera else None),
         "mock_camera": ("mock_camera", {**common, "fps": args.fps,
