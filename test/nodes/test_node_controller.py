@@ -72,6 +72,13 @@ class Arm:
     def q(self) -> np.ndarray:
         return np.array(self.states.last.position)
 
+    def forget(self) -> None:
+        """Drop what was recorded: two 1 kHz streams kept ~1e6 messages by the module's end,
+        and under load each test ran slower than the last (40-60 s instead of ~8 s)."""
+        for recorder in (self.states, self.commands, self.controller_state, self.heartbeats):
+            if recorder is not None:
+                recorder.clear()
+
     def settle(self, timeout_s: float = 3.0) -> bool:
         """Still for the last 100 states (0.1 s): one slow state may be the turning point
         of the overshoot when the arm brakes and comes back to the hold position."""
@@ -140,6 +147,13 @@ def arm(tmp_path_factory):
         assert code == 0, log[-4000:]
         assert "loop timing" in log
     assert stop_s < 5.0
+
+
+@pytest.fixture(autouse=True)
+def _fresh_recordings(request):
+    """Each test of the closed loop starts from empty recorders (it settles first)."""
+    if "arm" in request.fixturenames:
+        request.getfixturevalue("arm").forget()
 
 
 def test_nothing_is_commanded_before_the_first_joint_state(arm: Arm):
@@ -252,10 +266,13 @@ def test_rejects_a_malformed_trajectory_and_stays_still(arm: Arm, case: str):
 def test_empty_trajectory_stops_and_holds(arm: Arm):
     assert arm.settle()
     q0 = arm.q()
-    goal = q0 + np.array([0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    # 8 s for 0.8 rad: a busy test process reads states late, and the stop must still land
-    # well before the end (in CI a 3 s trajectory had ended before the stop arrived)
-    arm.trajectories.publish(trajectory([8.0], [goal], [np.zeros(7)]))
+    step = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    goal = q0 + 0.8 * step
+    # Under way within 2 s, then slowly on for 18 s: a busy test process reads states late,
+    # and its stop must still land well before the end (in CI a 3 s trajectory, and here
+    # under a busy loop an 8 s one, had ended before the stop arrived).
+    arm.trajectories.publish(trajectory([2.0, 20.0], [q0 + 0.1 * step, goal],
+                                        [0.04 * step, np.zeros(7)]))
     assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.02, 5.0), arm.logs()
     arm.trajectories.publish(JointTrajectory(joint_names=NAMES))  # no points: stop
     assert arm.settle(), arm.logs()
