@@ -72,13 +72,6 @@ class Arm:
     def q(self) -> np.ndarray:
         return np.array(self.states.last.position)
 
-    def forget(self) -> None:
-        """Drop what was recorded: two 1 kHz streams kept ~1e6 messages by the module's end,
-        and under load each test ran slower than the last (40-60 s instead of ~8 s)."""
-        for recorder in (self.states, self.commands, self.controller_state, self.heartbeats):
-            if recorder is not None:
-                recorder.clear()
-
     def settle(self, timeout_s: float = 3.0) -> bool:
         """Still for the last 100 states (0.1 s): one slow state may be the turning point
         of the overshoot when the arm brakes and comes back to the hold position."""
@@ -147,13 +140,6 @@ def arm(tmp_path_factory):
         assert code == 0, log[-4000:]
         assert "loop timing" in log
     assert stop_s < 5.0
-
-
-@pytest.fixture(autouse=True)
-def _fresh_recordings(request):
-    """Each test of the closed loop starts from empty recorders (it settles first)."""
-    if "arm" in request.fixturenames:
-        request.getfixturevalue("arm").forget()
 
 
 def test_nothing_is_commanded_before_the_first_joint_state(arm: Arm):
