@@ -3,7 +3,7 @@
 mock_panda, controller, planner, mock_camera and tracker start on a private ROS domain;
 once they are all up (joint states, planner status and obstacle data flowing), the demo
 starts the scenario clock — ``scenario_start_time_s`` set on mock_panda and mock_camera while
-they run, until then every obstacle waits at its first waypoint — and, once both have it,
+they run, until then every obstacle waits at its first waypoint — and at that instant
 publishes the scenario's goal on ``goal_pose`` as a user would, so a moving obstacle meets
 the arm as the scenario describes, however long start-up took; then it watches the arm
 until the goal is held (or the time limit passes), stops every node cleanly and prints a
@@ -185,8 +185,7 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
             return result
         clock["start"] = start_time
         cpu_before = _cpu(procs)
-        # the goal now, the scenario's t = 0 just after: a starved demo process that woke
-        # late for t = 0 made the goal late and let the scene run ahead of it
+        _spin_until(executor, lambda: False, start_time, procs)  # scenario clock starts now
         goal_pub.publish(_goal_message(scenario, node))
         t_goal = time.time()
         result["goal_delay_s"] = t_goal - start_time
