@@ -43,8 +43,9 @@ def test_short_soak_measures_every_node_and_keeps_the_limits(tmp_path, capsys):
         assert row["violations"] == 0, row
         assert math.isfinite(row["min_clearance_m"]), row  # every window was scored
         # the 1 kHz streams flow (a stalled loop gives ~0); the rate itself is a soak
-        # target, not a test bound: the suite's own node processes load the machine
-        assert row["joint_states_hz"] > 500 and row["commands_hz"] > 500, row
+        # target, not a test bound: the suite's own node processes load the machine, and
+        # the monitor, at normal priority, counted 318 Hz of commands once on a fresh clone
+        assert row["joint_states_hz"] > 100 and row["commands_hz"] > 100, row
         for name in (n for n in NODES if n != "tracker"):
             assert row["rss_mb"][name] > 20.0, (name, row["rss_mb"])
     assert rows[0]["reroute_decided_ms"]["n"] + rows[0]["plan_decided_ms"]["n"] > 0
