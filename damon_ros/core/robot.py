@@ -159,15 +159,17 @@ class Robot:
         T = self.fk(q)
         return T[:3, 3].copy(), pin.Quaternion(T[:3, :3]).coeffs().copy()
 
+    @cached_property
+    def _tcp_chain(self) -> tuple[Chain, np.ndarray]:
+        """Batched FK of this model and the block placing its TCP, built on first use."""
+        chain = Chain(self.model)
+        return chain, chain.frame_block([TCP_FRAME])
+
     def tcp_positions(self, Q) -> np.ndarray:
         """TCP positions (N, 3) of configurations Q (N, 7), batched: the planner places its
         20k graph vertices at start-up (one `tcp_pose` each took ~0.9 s)."""
-        Q = self._check_batch(Q)
-        if "_tcp_chain" not in self.__dict__:
-            chain = Chain(self.model)
-            self._tcp_chain = (chain, chain.frame_block([TCP_FRAME]))
         chain, block = self._tcp_chain
-        return chain.positions(Q, block)[:, 0]
+        return chain.positions(self._check_batch(Q), block)[:, 0]
 
     def frame_positions(self, q) -> dict[str, np.ndarray]:
         """Positions of the link frames ``panda_link0..8``, hand and TCP (e.g. to draw)."""

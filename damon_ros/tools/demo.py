@@ -227,8 +227,8 @@ class ScenarioClock:
     def start(self) -> float | None:
         """Wall time of scenario t = 0, set on every simulator before it came; None when one
         did not answer within 20 s, or not once in time."""
-        ready = lambda: all(c.service_is_ready() for c in self.clients)  # noqa: E731
-        if not _spin_until(self.executor, ready, time.time() + 10.0, self.procs):
+        if not _spin_until(self.executor, self._services_ready, time.time() + 10.0,
+                           self.procs):
             return None
         lead = CLOCK_LEAD_S
         for _ in range(CLOCK_TRIES):
@@ -243,6 +243,9 @@ class ScenarioClock:
                 return start
             lead = max(lead, 2.0 * (time.time() - sent))
         return None
+
+    def _services_ready(self) -> bool:
+        return all(c.service_is_ready() for c in self.clients)
 
 
 def _clock_request(start: float):
