@@ -366,7 +366,7 @@ class Tolerances:
 # ----------------------------------------------------------------------------- follower
 
 DEFAULT_VELOCITY_LEAD_S = 0.04
-"""s: the feed-forward velocity is the desired velocity this far ahead (see `TrajectoryFollower`)."""
+"""s: the feed-forward velocity is the desired one this far ahead (`TrajectoryFollower`)."""
 
 FEASIBILITY_TOLERANCE = 1e-6
 """Relative slack of the feasibility check over the limits (rounding of the spline)."""
