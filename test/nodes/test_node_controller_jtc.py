@@ -183,11 +183,29 @@ def _reached(arm: Loop, goal: np.ndarray, tol: float, timeout_s: float = 5.0) ->
     return arm.ros.spin_until(lambda: np.max(np.abs(arm.q() - goal)) < tol, timeout_s)
 
 
+STALLS = ("joint states stale", f"no {topics.PLANNER_STATUS}")
+"""Logged stops a stall of this shared machine causes (states or heartbeat late): the
+controller must answer them by stopping, so they excuse one failed attempt, no more."""
+
+
+def _stalls(arm: Loop) -> int:
+    return sum(len(arm.lines(needle)) for needle in STALLS)
+
+
+def _move_and_reach(arm: Loop, delta, duration=1.0, order=None) -> np.ndarray:
+    for _ in range(2):
+        assert arm.settle(), arm.logs()
+        stalls = _stalls(arm)
+        goal, line = _move(arm, delta, duration, order)
+        assert ACCEPTED in line, line
+        if _reached(arm, goal, 2e-3) or _stalls(arm) == stalls:
+            break
+    assert _reached(arm, goal, 2e-3, 0.1), arm.logs()
+    return goal
+
+
 def test_jumbled_joint_order_is_accepted_and_mapped_by_name(arm: Loop):
-    assert arm.settle()
-    goal, line = _move(arm, [0.1, -0.1, 0.1, 0.1, -0.1, 0.1, 0.2], 1.0, [6, 0, 3, 1, 5, 2, 4])
-    assert ACCEPTED in line, line
-    assert _reached(arm, goal, 2e-3), arm.logs()
+    _move_and_reach(arm, [0.1, -0.1, 0.1, 0.1, -0.1, 0.1, 0.2], 1.0, [6, 0, 3, 1, 5, 2, 4])
 
 
 def test_plain_move_settles_without_overshoot(arm: Loop):
@@ -195,13 +213,13 @@ def test_plain_move_settles_without_overshoot(arm: Loop):
     (before the velocity lead: 1-3 mrad, then back) and ends within 1 mrad."""
     assert arm.settle()
     for _ in range(2):  # a logged stale-state abort (a stall of this machine) spoils one try
-        stale = len(arm.lines("joint states stale"))
+        stale = _stalls(arm)
         k = len(arm.states)
         goal, line = _move(arm, [0.3, 0, 0, 0, 0, 0, 0])
         assert ACCEPTED in line, line
         reached = _reached(arm, goal, 1e-3)
         arm.ros.spin_for(1.0)
-        if reached or len(arm.lines("joint states stale")) == stale:
+        if reached or _stalls(arm) == stale:
             break
         assert arm.settle()
     assert reached, arm.logs()
@@ -295,9 +313,7 @@ def test_trajectories_sent_while_joint_states_are_paused_are_answered(arm: Loop)
     assert arm.ros.spin_until(lambda: bool(arm.lines("joint states are back")), 5.0)
     assert arm.settle()
     assert np.max(np.abs(arm.q() - q0)) < 2e-3  # the refused ones never ran
-    goal, line = _move(arm, [0.05, 0, 0, 0, 0, 0, 0], 1.0)
-    assert ACCEPTED in line, line
-    assert _reached(arm, goal, 2e-3), arm.logs()
+    _move_and_reach(arm, [0.05, 0, 0, 0, 0, 0, 0], 1.0)
 
 
 # ----------------------------------------------------------------------------- blocked
