@@ -436,6 +436,7 @@ def _heartbeat(rate_hz: float, topic: str) -> int:
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from rclpy.executors import ExternalShutdownException
 
+    launch.exit_with_parent()
     rclpy.init()
     node = rclpy.create_node("fake_planner")
     pub = node.create_publisher(DiagnosticArray, topic, 10)

@@ -13,6 +13,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -57,6 +59,11 @@ def start_node(module: str, params: Mapping[str, object] | None, env: Mapping[st
                          log_path, cwd)
 
 
+PARENT_VARIABLE = "DAMON_EXIT_WITH_PARENT"
+"""Set by `start_process` to the starter's pid; a process that runs `exit_with_parent` ends
+when that pid is no longer its parent."""
+
+
 def start_process(cmd: Sequence[str], env: Mapping[str, str], log_path: str | Path,
                   cwd: str | Path | None = None) -> subprocess.Popen:
     """Run ``cmd`` in its own process and process group, logging to ``log_path``.
@@ -64,12 +71,15 @@ def start_process(cmd: Sequence[str], env: Mapping[str, str], log_path: str | Pa
     The process group lets `stop_node` reach whatever the process starts; the log file's
     folder is created, and this process closes its copy of the file at once (the child
     holds its own), so nothing is left open here. The returned Popen carries ``log_path``
-    for `read_log`.
+    for `read_log`. The child is told this process's pid (`PARENT_VARIABLE`), so a node
+    whose starter dies without stopping it (a test killed at its timeout, a demo killed
+    with SIGKILL) ends by itself instead of running on at real-time priority.
     """
     log_path = Path(log_path)
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    env = dict(env, **{PARENT_VARIABLE: str(os.getpid())})
     with open(log_path, "wb") as log:
-        proc = subprocess.Popen(list(cmd), cwd=cwd, env=dict(env), stdout=log,
+        proc = subprocess.Popen(list(cmd), cwd=cwd, env=env, stdout=log,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 start_new_session=True)
     proc.log_path = log_path  # type: ignore[attr-defined]
@@ -101,3 +111,23 @@ def read_log(proc: subprocess.Popen) -> str:
     if path is None or not Path(path).exists():
         return ""
     return Path(path).read_text(errors="replace")
+
+
+def exit_with_parent(period_s: float = 0.5) -> None:
+    """End this process with SIGINT once the process that started it is gone.
+
+    Only for processes started by `start_process` (others have no `PARENT_VARIABLE` and
+    this does nothing). A daemon thread compares ``os.getppid()`` with the recorded pid
+    every ``period_s``: an orphan is re-parented, so the two differ within one period, and
+    SIGINT takes the process through its normal shutdown (nodes stop their loops and exit).
+    """
+    expected = os.environ.get(PARENT_VARIABLE)
+    if not expected or not expected.isdigit():
+        return
+
+    def watch() -> None:
+        while os.getppid() == int(expected):
+            time.sleep(period_s)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=watch, name="exit_with_parent", daemon=True).start()
