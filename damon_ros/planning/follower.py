@@ -68,6 +68,10 @@ class PIDGains:
 
 # ----------------------------------------------------------------------------- validation
 
+FLOAT_EPSILON = 1.1920929e-07
+"""The JTC's test for a "zero" final velocity: |v| <= float epsilon."""
+
+
 def _optional_rows(name: str, rows, n_points: int, n_joints: int):
     """(array or None, reason or None) for per-point optional vectors such as velocities.
 
@@ -90,16 +94,20 @@ def _optional_rows(name: str, rows, n_points: int, n_joints: int):
     return arr, None
 
 
-def _check_names(joint_names: Sequence[str], expected_names: Sequence[str]) -> str | None:
+def _check_names(joint_names: Sequence[str], expected_names: Sequence[str],
+                 allow_partial: bool) -> str | None:
     names = list(joint_names)
     if len(set(names)) != len(names):
         return f"joint names repeat: {names}"
     unknown = sorted(set(names) - set(expected_names))
     if unknown:
         return f"unknown joints {unknown}; this controller drives {list(expected_names)}"
+    if not names:
+        return "no joint names"
     missing = [n for n in expected_names if n not in names]
-    if missing:
-        return f"missing joints {missing}; a trajectory must command all of {list(expected_names)}"
+    if missing and not allow_partial:
+        return (f"missing joints {missing}; a trajectory must command all of "
+                f"{list(expected_names)} (allow_partial_joints_goal is false)")
     return None
 
 
@@ -133,9 +141,14 @@ def _check_limits(positions, velocities, limits: JointLimits, tolerance: float) 
     return None
 
 
-def _points(joint_names, expected_names, times, positions, velocities, accelerations):
-    """Check structure and values; (positions, velocities, accelerations) in controller order."""
-    reason = _check_names(joint_names, expected_names) or _check_times(times)
+def _points(joint_names, expected_names, times, positions, velocities, accelerations,
+            allow_partial: bool = False, fill=None):
+    """Check structure and values; (positions, velocities, accelerations) in controller order.
+
+    Joints the message leaves out (only with ``allow_partial``) get ``fill`` (the current
+    position: they hold it, as in the JTC) and zero velocity and acceleration.
+    """
+    reason = _check_names(joint_names, expected_names, allow_partial) or _check_times(times)
     if reason:
         return reason, None
     n_points, n_joints = len(times), len(joint_names)
@@ -155,46 +168,88 @@ def _points(joint_names, expected_names, times, positions, velocities, accelerat
         return reason, None
     if acc is not None and vel is None:
         return "accelerations given without velocities", None
-    order = [list(joint_names).index(n) for n in expected_names]
-    return None, tuple(None if a is None else a[:, order] for a in (pos, vel, acc))
+    names = list(joint_names)
+    if len(names) == len(expected_names):
+        order = [names.index(n) for n in expected_names]
+        return None, tuple(None if a is None else a[:, order] for a in (pos, vel, acc))
+    if fill is None:
+        return "a partial trajectory needs the current position of the other joints", None
+    fill = np.asarray(fill, dtype=float)
+    out = []
+    for k, a in enumerate((pos, vel, acc)):
+        if a is None:
+            out.append(None)
+            continue
+        full = np.tile(fill, (n_points, 1)) if k == 0 else np.zeros((n_points, len(fill)))
+        for j, name in enumerate(expected_names):
+            if name in names:
+                full[:, j] = a[:, names.index(name)]
+        out.append(full)
+    return None, tuple(out)
 
 
 def validate_trajectory(joint_names: Sequence[str], expected_names: Sequence[str], times,
                         positions, velocities, accelerations, limits: JointLimits,
                         tolerance: float = 1e-6, start_time: float | None = None,
-                        now: float | None = None) -> str | None:
+                        now: float | None = None, allow_partial: bool = False,
+                        allow_nonzero_end_velocity: bool = False) -> str | None:
     """None when the trajectory is acceptable, else a one-line reason to log and ignore it.
 
-    The JTC's rules: joints must match the controller's (any order, none missing, none
-    unknown), time_from_start strictly increasing, no NaN or inf, consistent vector lengths;
-    plus ours: positions within the limits and velocities within the velocity limits. With
-    ``start_time`` and ``now`` a trajectory that would already have ended is rejected too.
-    An empty trajectory (no points) is valid: it means "stop and hold".
+    The JTC's rules (ros2_controllers Jazzy): at least one point; joints must match the
+    controller's (any order, none unknown, none missing unless ``allow_partial``);
+    time_from_start strictly increasing; no NaN or inf; consistent vector lengths; a zero
+    velocity at the last point unless ``allow_nonzero_end_velocity``; with ``start_time``
+    and ``now``, a stamped trajectory that would already have ended is refused. Plus ours:
+    positions within the limits and velocities within the velocity limits (what happens
+    between the points is `TrajectoryFollower.prepare`'s check).
+
+    An empty trajectory is refused, as the JTC refuses it: stopping is a trajectory too
+    (one point at the current position, "hold"), so that a stop means the same to every
+    controller it may reach.
     """
+    if len(times) == 0:
+        return ("no points; an empty trajectory is not a stop (as in the JTC): to stop, send "
+                "one point at the current position")
     reason, arrays = _points(joint_names, expected_names, times, positions, velocities,
-                             accelerations)
+                             accelerations, allow_partial, fill=np.zeros(len(expected_names)))
     if reason:
         return reason
     pos, vel, _ = arrays
-    if pos.shape[0] == 0:
-        return None
-    reason = _check_limits(pos, vel, limits, tolerance)
+    given = [list(expected_names).index(n) for n in joint_names]
+    reason = _check_limits(pos[:, given], None if vel is None else vel[:, given],
+                           _subset(limits, given), tolerance)
     if reason:
         return reason
+    if vel is not None and not allow_nonzero_end_velocity:
+        fast = np.abs(vel[-1]) > FLOAT_EPSILON
+        if np.any(fast):
+            j = int(np.argmax(fast))
+            return (f"the last point asks {expected_names[j]} for {vel[-1, j]:.6g} rad/s, not "
+                    "zero (allow_nonzero_velocity_at_trajectory_end is false)")
     if start_time is not None and now is not None and start_time > 0.0 and \
             start_time + float(times[-1]) < now:
-        return "trajectory ends in the past"
+        return (f"trajectory ends in the past (stamped {start_time:.3f} + "
+                f"{float(times[-1]):.3f} s < now {now:.3f})")
     return None
 
 
+def _subset(limits: JointLimits, joints: list[int]) -> JointLimits:
+    """The limits of some joints only (a partial trajectory is checked on the joints it names)."""
+    return JointLimits(limits.profile, tuple(limits.names[j] for j in joints),
+                       *(getattr(limits, k)[joints] for k in
+                         ("lower", "upper", "velocity", "acceleration", "jerk")))
+
+
 def reorder_points(joint_names: Sequence[str], expected_names: Sequence[str], times, positions,
-                   velocities=None, accelerations=None):
+                   velocities=None, accelerations=None, fill=None):
     """(times, positions, velocities|None, accelerations|None) as arrays in controller order.
 
-    Call after `validate_trajectory` accepted the message; raises ValueError otherwise.
+    ``fill``: positions of the controller's joints, used for those a partial trajectory
+    leaves out. Call after `validate_trajectory` accepted the message; raises ValueError
+    otherwise.
     """
     reason, arrays = _points(joint_names, expected_names, times, positions, velocities,
-                             accelerations)
+                             accelerations, allow_partial=fill is not None, fill=fill)
     if reason:
         raise ValueError(reason)
     return (np.asarray(times, dtype=float), *arrays)
@@ -263,18 +318,119 @@ class CommandShaper:
         return u_next, (u_next - u) / dt
 
 
+# ----------------------------------------------------------------------------- tolerances
+
+@dataclass(frozen=True)
+class Tolerances:
+    """The JTC's ``constraints``: when a running trajectory is aborted and the arm held.
+
+    ``path`` (``constraints.<joint>.trajectory``, rad): while the trajectory runs, a joint
+    further than this from its desired position aborts it. ``goal``
+    (``constraints.<joint>.goal``, rad) and ``stopped_velocity``
+    (``constraints.stopped_velocity_tolerance``, rad/s): after the end, the goal is reached
+    once every joint is within ``goal`` of the last point and moves slower than
+    ``stopped_velocity``; if that has not happened ``goal_time`` s after the end
+    (``constraints.goal_time``), the trajectory is aborted. 0 switches a check off, and the
+    defaults are the JTC's: no path or goal check, wait for the goal for ever, 0.01 rad/s.
+    Aborting holds the arm where it is measured, as the JTC does.
+    """
+
+    path: np.ndarray
+    goal: np.ndarray
+    goal_time: float = 0.0
+    stopped_velocity: float = 0.01
+
+    def __post_init__(self):
+        for name in ("path", "goal"):
+            value = np.asarray(getattr(self, name), dtype=float).reshape(-1)
+            if not np.all(np.isfinite(value)) or np.any(value < 0.0):
+                raise ValueError(f"{name} tolerances must be finite and >= 0, got {value}")
+            object.__setattr__(self, name, value)
+        if self.path.shape != self.goal.shape:
+            raise ValueError("path and goal tolerances must name the same joints")
+        for name in ("goal_time", "stopped_velocity"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
+
+    @classmethod
+    def unchecked(cls, n: int = 7) -> Tolerances:
+        """The JTC's defaults for ``n`` joints."""
+        return cls(np.zeros(n), np.zeros(n))
+
+
 # ----------------------------------------------------------------------------- follower
+
+DEFAULT_VELOCITY_LEAD_S = 0.04
+"""s: the feed-forward velocity is the desired one this far ahead (`TrajectoryFollower`)."""
+
+FEASIBILITY_TOLERANCE = 1e-6
+"""Relative slack of the feasibility check over the limits (rounding of the spline)."""
+
+VELOCITY_FILTER_S = 0.01
+"""s: time constant of the measured-velocity estimate used for ``stopped_velocity``."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A trajectory made ready to run: its spline and the controller time of its time 0."""
+
+    spline: Spline
+    start: float
+
+
+def _feasibility(spline: Spline, limits: JointLimits) -> str | None:
+    """Why the interpolated trajectory cannot be followed within the limits, or None.
+
+    The points may be within the limits while the curve between them is not (a quintic
+    through close points overshoots; a short time asks for a high speed). Followed anyway,
+    the command shaper would clip it and the arm lag behind and overshoot its goal (55-61
+    mrad measured before this check), so such a trajectory is refused instead. Acceleration
+    is checked on cubic and quintic curves only: a linear one (positions only) steps its
+    velocity at every point by definition, and the shaper rounds those steps off.
+    """
+    q, qd, qdd = spline.sample()
+    slack = 1.0 + FEASIBILITY_TOLERANCE
+    for what, bad in (("position", (q < limits.lower - FEASIBILITY_TOLERANCE)
+                       | (q > limits.upper + FEASIBILITY_TOLERANCE)),
+                      ("velocity", np.abs(qd) > limits.velocity * slack),
+                      ("acceleration", np.abs(qdd) > limits.acceleration * slack
+                       if spline.order >= 3 else np.zeros_like(q, dtype=bool))):
+        if np.any(bad):
+            k, j = np.argwhere(bad)[0]
+            value, limit = {"position": (q[k, j], (limits.lower[j], limits.upper[j])),
+                            "velocity": (qd[k, j], limits.velocity[j]),
+                            "acceleration": (qdd[k, j], limits.acceleration[j])}[what]
+            return (f"cannot be followed within the limits: between its points it asks "
+                    f"{limits.names[j]} for {what} {value:.4g} (limit {limit})")
+    return None
+
 
 class TrajectoryFollower:
     """Tracks a joint trajectory with PID + velocity feed-forward, JTC style.
 
-    `set_trajectory` replaces whatever runs (an empty one holds the current position), and
-    `update` is called at ``rate_hz`` with the measured positions and returns the velocity
-    command. Not thread-safe: the ROS adapter calls it from one executor thread.
+    `set_trajectory` replaces whatever runs (`prepare` + `start` do the same in two steps,
+    so that a caller can check a long trajectory outside its lock), and `update` is called
+    at ``rate_hz`` with the measured positions and returns the velocity command. Before
+    the first trajectory, and after an abort, it holds the measured position. What it
+    decides by itself (a trajectory aborted on a tolerance, a goal reached, a trajectory
+    refused when it was set before the first measurement) is queued as one-line events for
+    the caller to log: `take_events`. Not thread-safe: the ROS adapter calls it under a lock.
+
+    The feed-forward velocity is the desired velocity ``velocity_lead_s`` ahead. A velocity
+    loop lags its command (mock_panda's first-order actuator: 20 ms, plus ~2-8 ms of
+    transport and sampling in the loop); fed the velocity of *now*, the lagging arm is
+    ahead of the desired position while the trajectory decelerates and overshoots the goal
+    (1.3-1.5 mrad on a 0.3 rad, 1.5 s move, simulated; 1-3 mrad measured over DDS). Leading
+    by more than the lag turns that into a small trail that the P term closes monotonically
+    (simulated: < 0.04 mrad past the goal for 0-8 ms of loop delay); leading by less
+    leaves some of the overshoot, so the default errs on the long side.
     """
 
     def __init__(self, limits: JointLimits, gains: PIDGains | None = None,
-                 rate_hz: float = 1000.0, interpolation: str = "quintic"):
+                 rate_hz: float = 1000.0, interpolation: str = "quintic",
+                 tolerances: Tolerances | None = None,
+                 velocity_lead_s: float = DEFAULT_VELOCITY_LEAD_S):
         self.limits = limits
         self.n = limits.lower.size
         self.gains = gains if gains is not None else PIDGains.uniform(self.n)
@@ -284,40 +440,76 @@ class TrajectoryFollower:
             raise ValueError(f"rate_hz must be a positive number, got {rate_hz}")
         if interpolation not in METHODS:
             raise ValueError(f"interpolation must be one of {METHODS}, got {interpolation!r}")
+        self.tolerances = tolerances if tolerances is not None else Tolerances.unchecked(self.n)
+        if self.tolerances.path.size != self.n:
+            raise ValueError(f"tolerances are for {self.tolerances.path.size} joints, "
+                             f"limits for {self.n}")
+        if not (math.isfinite(velocity_lead_s) and velocity_lead_s >= 0.0):
+            raise ValueError(f"velocity_lead_s must be >= 0, got {velocity_lead_s}")
+        self.velocity_lead_s = float(velocity_lead_s)
         self.rate_hz = float(rate_hz)
         self.shaper = CommandShaper(limits)
         g = self.gains  # the integral is capped so that its term stays within i_clamp
         self._integral_cap = np.divide(g.i_clamp, g.i, out=np.zeros(self.n), where=g.i > 0.0)
         self.interpolation = interpolation
         self._spline: Spline | None = None
-        self._start: float | None = None
-        self._pending: tuple | None = None  # a trajectory waiting for the current state
+        self._start = 0.0
+        self._goal_done = False
+        self._pending: tuple | None = None  # set before the first measurement: no state yet
         self._hold_q: np.ndarray | None = None
         self._hold_pending = False
         self._q_last: np.ndarray | None = None
         self._t_last: float | None = None
         zeros = np.zeros(self.n)
         self._u, self._a, self._integral = zeros.copy(), zeros.copy(), zeros.copy()
+        self._v_est = zeros.copy()
         self._e_prev: np.ndarray | None = None
         self._desired = (zeros.copy(), zeros.copy(), zeros.copy())
         self._error = zeros.copy()
+        self._events: list[tuple[str, str]] = []
         self.last_fault: str | None = None
 
     # -- commands in
 
-    def set_trajectory(self, times, positions, velocities=None, accelerations=None,
-                       start_time: float | None = None) -> None:
-        """Replace the running trajectory (controller joint order; time 0 at ``start_time``).
+    def snapshot(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """(time, measured position, command) of the last update; None before the first."""
+        if self._q_last is None or self._t_last is None:
+            return None
+        return self._t_last, self._q_last.copy(), self._u.copy()
 
-        ``start_time`` None starts it at the next `update` (a zero header stamp). No points
-        stops the arm and holds the current position. When the first point lies after time
-        0, the motion starts from the current state, as in the JTC.
+    def prepare(self, times, positions, velocities=None, accelerations=None,
+                start_time: float | None = None,
+                state: tuple[float, np.ndarray, np.ndarray] | None = None) -> Plan:
+        """A `Plan` of the trajectory from ``state`` (a `snapshot`), or ValueError why not.
+
+        Pure: reads only this follower's fixed settings, so it may run outside the caller's
+        lock. ``start_time`` None starts the trajectory at the state's time (a zero header
+        stamp). Like the JTC, when the trajectory's first point lies ahead of that time
+        (``time_from_start`` > 0, or a future stamp), the motion is interpolated from the
+        current position and velocity, reaching the first point on time: a future stamp
+        is approached, not waited for. Refused: a trajectory of the wrong size, outside
+        the limits, or one whose interpolated curve leaves the velocity or acceleration
+        limits (`_feasibility`).
         """
+        if state is None:
+            raise ValueError("no joint state yet: the start of the motion is unknown")
+        now, q, u = state
         times = np.asarray(times, dtype=float).reshape(-1)
         if times.size == 0:
-            self._spline, self._pending = None, None
-            self._hold_q, self._hold_pending = None, True
-            return
+            raise ValueError("a trajectory needs at least one point")
+        spline = self._checked_spline(times, positions, velocities, accelerations, start_time)
+        start = now if start_time is None else float(start_time)
+        ahead = times[0] - (now - start)
+        if ahead > 0.0:  # anchor: the current state at `now`, then the trajectory's points
+            spline = self._anchored(spline, times + (start - now), q, u)
+            start = now
+        reason = _feasibility(spline, self.limits)
+        if reason:
+            raise ValueError(reason)
+        return Plan(spline, start)
+
+    def _checked_spline(self, times, positions, velocities, accelerations,
+                        start_time: float | None) -> Spline:
         if start_time is not None and not math.isfinite(start_time):
             raise ValueError(f"start_time must be finite, got {start_time}")
         spline = Spline(times, positions, velocities, accelerations, self.interpolation)
@@ -327,10 +519,37 @@ class TrajectoryFollower:
         reason = _check_limits(spline.positions, spline.velocities, self.limits, 1e-6)
         if reason:
             raise ValueError(reason)
-        self._pending = (spline, start_time)
-        self._spline, self._hold_pending = None, False
-        if self._q_last is not None and start_time is not None:
-            self._activate(self._q_last)
+        return spline
+
+    def start(self, plan: Plan) -> None:
+        """Replace whatever runs by ``plan`` (from `prepare`)."""
+        self._spline, self._start = plan.spline, plan.start
+        self._pending, self._hold_q, self._hold_pending = None, None, False
+        self._goal_done = False
+        self._e_prev = None  # the error may jump: no derivative kick
+
+    def set_trajectory(self, times, positions, velocities=None, accelerations=None,
+                       start_time: float | None = None) -> None:
+        """Replace the running trajectory (controller joint order; time 0 at ``start_time``).
+
+        `prepare` from the last update's state, then `start`; raises ValueError (and keeps
+        what runs) for a trajectory that `prepare` refuses. Before the first measurement the
+        trajectory waits for it (refused then, it becomes an event and the arm holds). No
+        points holds the current position: a library caller's stop (the controller node
+        refuses empty messages, as the JTC does).
+        """
+        times = np.asarray(times, dtype=float).reshape(-1)
+        if times.size == 0:
+            self._spline, self._pending = None, None
+            self._hold_q, self._hold_pending = None, True
+            return
+        state = self.snapshot()
+        if state is None:
+            self._checked_spline(times, positions, velocities, accelerations, start_time)
+            self._pending = (times, positions, velocities, accelerations, start_time)
+            self._spline, self._hold_pending = None, False
+            return
+        self.start(self.prepare(times, positions, velocities, accelerations, start_time, state))
 
     def hold(self, q) -> None:
         """Stop following any trajectory and hold ``q``."""
@@ -341,23 +560,21 @@ class TrajectoryFollower:
         self._hold_q = q.copy()
         self._e_prev = None
 
-    def _activate(self, q: np.ndarray, now: float | None = None) -> None:
-        """Start the pending trajectory from the current state ``q``."""
-        spline, start = self._pending
-        self._pending = None
-        self._start = now if start is None else start
-        if spline.times[0] > 0.0:
-            spline = self._anchored(spline, q)
-        self._spline, self._hold_q = spline, None
-        self._e_prev = None  # the error may jump: no derivative kick
+    def take_events(self) -> list[tuple[str, str]]:
+        """(level, line) pairs decided inside `update` since the last call; level is
+        ``info``, ``warning`` or ``error``."""
+        events, self._events = self._events, []
+        return events
 
-    def _anchored(self, spline: Spline, q: np.ndarray) -> Spline:
-        """The spline with the current state prepended at time 0 (the JTC does the same)."""
+    def _anchored(self, spline: Spline, times: np.ndarray, q: np.ndarray,
+                  u: np.ndarray) -> Spline:
+        """The spline with the current state prepended at time 0 (the JTC does the same);
+        ``times`` are the points' times from now."""
         def prepend(first, rows):
             return None if rows is None else np.vstack((first, rows))
-        return Spline(np.concatenate(([0.0], spline.times)),
+        return Spline(np.concatenate(([0.0], times)),
                       np.vstack((q, spline.positions)),
-                      prepend(self._u, spline.velocities),
+                      prepend(u, spline.velocities),
                       prepend(np.zeros(self.n), spline.accelerations),
                       self.interpolation)
 
@@ -378,7 +595,6 @@ class TrajectoryFollower:
         dt = cycle if self._t_last is None else t - self._t_last
         if dt <= 0.0:
             return self._u.copy()  # same or earlier instant: nothing new to say
-        self._t_last = t
         # The PID works in the time that passed; the command is shaped for one cycle of the
         # arm whatever passed: a Franka applies one command per 1 ms cycle and checks the
         # acceleration and jerk implied by consecutive commands over that cycle. Shaped for
@@ -386,10 +602,22 @@ class TrajectoryFollower:
         # 1.48x its acceleration and 2.3x its jerk limit (mock_panda's limit monitor, camera
         # demo on the loaded 2-core machine); for a late tick this is only slower.
         if not np.isfinite(q).all():
+            self._t_last = t
             return self._fault(cycle)
+        if self._q_last is not None:
+            alpha = dt / (VELOCITY_FILTER_S + dt)
+            self._v_est += alpha * ((q - self._q_last) / dt - self._v_est)
+        self._t_last = t
         self._resolve_pending(t, q)
         q_d, qd_d, qdd_d = self._desired_state(t)
-        target, integral = self._pid(q_d - q, qd_d, dt, q)
+        if self._spline is not None:
+            self._check_tolerances(t, q, q_d - q)
+            if self._spline is None:  # aborted: hold here
+                q_d, qd_d, qdd_d = self._desired_state(t)
+        qd_ff = qd_d
+        if self._spline is not None and self.velocity_lead_s > 0.0:
+            qd_ff = self._spline.evaluate(t - self._start + self.velocity_lead_s)[1]
+        target, integral = self._pid(q_d - q, qd_ff, dt, q)
         self._u, self._a = self.shaper.shape(target, self._u, self._a, cycle)
         # Anti-windup: integrate only where the arm is given what the PID asked for — not
         # clipped, and not more than a step of full acceleration behind (rate-limited).
@@ -401,9 +629,50 @@ class TrajectoryFollower:
 
     def _resolve_pending(self, t: float, q: np.ndarray) -> None:
         if self._pending is not None:
-            self._activate(q, now=t)
+            times, pos, vel, acc, start = self._pending
+            self._pending = None
+            try:
+                self.start(self.prepare(times, pos, vel, acc, start, (t, q, self._u.copy())))
+            except ValueError as exc:
+                self._events.append(("error", f"rejected trajectory: {exc}; holding"))
         if self._hold_pending or (self._spline is None and self._hold_q is None):
             self._hold_q, self._hold_pending = q.copy(), False
+
+    def _check_tolerances(self, t: float, q: np.ndarray, e: np.ndarray) -> None:
+        """The JTC's path and goal checks (`Tolerances`); an abort holds ``q``."""
+        tol = self.tolerances
+        end = self._start + self._spline.times[-1]
+        names = self.limits.names
+        if t < end:
+            bad = (tol.path > 0.0) & (np.abs(e) > tol.path)
+            if np.any(bad):
+                j = int(np.argmax(bad))
+                self.hold(q)
+                self._events.append((
+                    "error", f"path tolerance violated: {names[j]} is {1e3 * e[j]:+.2f} mrad "
+                    f"from its desired position (constraints.{names[j]}.trajectory "
+                    f"{1e3 * tol.path[j]:.2f} mrad): trajectory aborted, holding the "
+                    "measured position"))
+            return
+        if self._goal_done:
+            return
+        off = (tol.goal > 0.0) & (np.abs(e) > tol.goal)
+        moving = tol.stopped_velocity > 0.0 and bool(
+            np.any(np.abs(self._v_est) > tol.stopped_velocity))
+        if not off.any() and not moving:
+            self._goal_done = True
+            self._events.append(("info", f"goal reached {t - end:.3f} s after the end, largest "
+                                 f"error {1e3 * np.max(np.abs(e)):.3f} mrad"))
+        elif tol.goal_time > 0.0 and t - end > tol.goal_time:
+            j = int(np.argmax(off)) if off.any() else int(np.argmax(np.abs(self._v_est)))
+            why = (f"{names[j]} is {1e3 * e[j]:+.2f} mrad from the goal (constraints."
+                   f"{names[j]}.goal {1e3 * tol.goal[j]:.2f} mrad)" if off.any() else
+                   f"{names[j]} still moves at {self._v_est[j]:.4f} rad/s "
+                   f"(constraints.stopped_velocity_tolerance {tol.stopped_velocity:g})")
+            self.hold(q)
+            self._events.append(("error", f"goal not reached within constraints.goal_time "
+                                 f"{tol.goal_time:g} s: {why}; trajectory aborted, holding the "
+                                 "measured position"))
 
     def _desired_state(self, t: float):
         if self._spline is None:
@@ -438,6 +707,7 @@ class TrajectoryFollower:
         else:
             self._hold_pending = True
         self._integral[:] = 0.0
+        self._v_est[:] = 0.0
         self._e_prev = None
         self._error = np.full(self.n, np.nan)
         self._u, self._a = self.shaper.shape(np.zeros(self.n), self._u, self._a, cycle)

@@ -13,6 +13,7 @@ from damon_ros.core.limits import POSITION_LIMIT_MARGIN, joint_limits
 from damon_ros.planning.follower import (
     CommandShaper,
     PIDGains,
+    Tolerances,
     TrajectoryFollower,
     reorder_points,
     validate_trajectory,
@@ -91,7 +92,8 @@ def test_valid_and_reordered_trajectories_are_accepted_and_mapped_by_name():
     assert validate_trajectory(shuffled, NAMES, times, pos_s, vel_s, None, LIM) is None
     t, p, v, a = reorder_points(shuffled, NAMES, times, pos_s, vel_s, None)
     assert np.array_equal(p, np.array(pos)) and a is None and v.shape == (3, 7)
-    assert validate_trajectory(NAMES, NAMES, [], [], [], [], LIM) is None  # empty: stop
+    # Empty: refused, as the JTC refuses it (a stop is a one-point hold trajectory).
+    assert "no points" in validate_trajectory(NAMES, NAMES, [], [], [], [], LIM)
 
 
 def mutate(field, value):
@@ -137,7 +139,7 @@ def test_missing_joint_and_past_trajectory_are_rejected():
     assert reason.startswith("missing joints ['panda_joint7']")
     reason = validate_trajectory(NAMES, NAMES, times, pos, vel, None, LIM,
                                  start_time=10.0, now=11.0)
-    assert reason == "trajectory ends in the past"
+    assert reason.startswith("trajectory ends in the past")
     assert validate_trajectory(NAMES, NAMES, times, pos, vel, None, LIM,
                                start_time=10.0, now=10.2) is None
 
@@ -339,7 +341,10 @@ def test_commands_stay_finite_and_within_limits_whatever_comes_in(rate, jitter, 
     for kind, value, steps in events:
         if kind == "trajectory":
             times, pos, vel, acc = random_points(value)
-            f.set_trajectory(times, pos, vel, acc, start_time=None if value % 2 else t)
+            try:  # most random ones cannot be followed within the limits: refused
+                f.set_trajectory(times, pos, vel, acc, start_time=None if value % 2 else t)
+            except ValueError as exc:
+                assert "limits" in str(exc), exc
         elif kind == "hold":
             f.hold(value)
         elif kind == "empty":
@@ -358,3 +363,109 @@ def test_commands_stay_finite_and_within_limits_whatever_comes_in(rate, jitter, 
                 q = q + u * dt  # the arm moves as commanded between measurements
         if kind == "glitch":
             q = good
+
+
+# ----------------------------------------------------------------------------- JTC semantics
+
+def test_nonzero_final_velocity_is_refused_unless_allowed():
+    times, pos, vel = points()
+    vel = [list(v) for v in vel]
+    vel[-1][2] = 0.1
+    reason = validate_trajectory(NAMES, NAMES, times, pos, vel, None, LIM)
+    assert "panda_joint3" in reason and "allow_nonzero_velocity_at_trajectory_end" in reason
+    assert validate_trajectory(NAMES, NAMES, times, pos, vel, None, LIM,
+                               allow_nonzero_end_velocity=True) is None
+
+
+def test_partial_joints_are_refused_unless_allowed_and_then_hold_their_position():
+    names = [NAMES[4], NAMES[1]]
+    times, pos = [0.5], [[0.3, -0.2]]
+    assert "allow_partial_joints_goal" in validate_trajectory(names, NAMES, times, pos, None,
+                                                              None, LIM)
+    assert validate_trajectory(names, NAMES, times, pos, None, None, LIM,
+                               allow_partial=True) is None
+    _, p, v, _ = reorder_points(names, NAMES, times, pos, [[0.0, 0.0]], None, fill=HOME)
+    expected = HOME.copy()
+    expected[[4, 1]] = [0.3, -0.2]
+    assert np.array_equal(p[0], expected) and np.array_equal(v, np.zeros((1, 7)))
+
+
+def test_future_stamp_is_approached_from_the_current_state_not_waited_for():
+    f = TrajectoryFollower(LIM)
+    f.update(0.0, HOME)
+    goal = HOME + 0.1
+    f.set_trajectory([0.0], [goal], [np.zeros(7)], None, start_time=1.0)  # reach it at t=1
+    f.update(0.5, HOME)
+    assert np.all((f.desired[0] > HOME + 0.01) & (f.desired[0] < goal - 0.01))
+    f.update(1.0, HOME)
+    assert np.allclose(f.desired[0], goal)
+
+
+def test_a_trajectory_too_fast_to_follow_is_refused_not_clipped():
+    f = TrajectoryFollower(LIM)
+    f.update(0.0, HOME)
+    f.hold(HOME)
+    with pytest.raises(ValueError, match="cannot be followed within the limits"):
+        f.set_trajectory([0.05], [HOME + 0.3], [np.zeros(7)])  # ~9 rad/s
+    assert not f.active  # what ran (a hold) goes on
+
+
+def _track(f, q0, t_end, block=False):
+    """Follow with an arm that moves as commanded (or not at all); the events."""
+    q = q0.copy()
+    for t in np.arange(0.001, t_end, DT):
+        u = f.update(float(t), q)
+        if not block:
+            q = q + u * DT
+    return q, f.take_events()
+
+
+def test_path_tolerance_aborts_and_holds_the_measured_position():
+    tol = Tolerances(np.full(7, 0.01), np.zeros(7))
+    f = TrajectoryFollower(LIM, tolerances=tol)
+    f.update(0.0, HOME)
+    f.set_trajectory([1.0], [HOME + 0.3], [np.zeros(7)])
+    q, events = _track(f, HOME, 0.5, block=True)  # a blocked arm falls behind
+    assert [level for level, _ in events] == ["error"]
+    assert "path tolerance violated" in events[0][1] and "constraints.panda_joint1" in events[0][1]
+    assert not f.active and np.array_equal(f.desired[0], HOME)
+
+
+def test_goal_time_aborts_when_the_goal_is_not_reached_and_reports_a_reached_one():
+    tol = Tolerances(np.zeros(7), np.full(7, 1e-3), goal_time=0.2)
+    f = TrajectoryFollower(LIM, tolerances=tol)
+    f.update(0.0, HOME)
+    f.set_trajectory([0.3], [HOME + 0.01], [np.zeros(7)])
+    _, events = _track(f, HOME, 0.8, block=True)
+    assert len(events) == 1 and "goal not reached within constraints.goal_time" in events[0][1]
+    f = TrajectoryFollower(LIM, tolerances=tol)
+    f.update(0.0, HOME)
+    f.set_trajectory([0.3], [HOME + 0.01], [np.zeros(7)])
+    _, events = _track(f, HOME, 0.8)
+    assert len(events) == 1 and events[0][1].startswith("goal reached"), events
+
+
+@pytest.mark.parametrize("delay_ticks", [0, 2, 6])
+def test_a_plain_move_on_a_lagging_arm_settles_without_overshoot(delay_ticks):
+    """The mock arm's 20 ms actuator lag plus a loop delay: the goal is approached from one
+    side (before the velocity lead, 1.3-1.5 mrad past it)."""
+    from collections import deque
+
+    from damon_ros.simulation.mock_arm import ArmSim
+
+    f = TrajectoryFollower(LIM)
+    sim = ArmSim(LIM, HOME)
+    goal = HOME + np.array([0.3, 0, 0, 0, 0, 0, 0])
+    measured = deque([HOME] * (delay_ticks + 1))
+    f.update(0.0, HOME)
+    f.set_trajectory([0.75, 1.5], [0.5 * (HOME + goal), goal],
+                     [0.5 * (goal - HOME) / 0.75, np.zeros(7)])
+    past = []
+    for k in range(1, 3500):
+        sim.command(f.update(k * DT, measured.popleft()), k * DT)
+        q, _ = sim.step(DT, (k + 1) * DT)
+        measured.append(q)
+        past.append(q[0] - goal[0])
+    past = np.array(past)
+    assert past.max() < 5e-5, past.max()  # never more than 0.05 mrad beyond the goal
+    assert abs(past[-1]) < 1e-4

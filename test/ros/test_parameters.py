@@ -35,10 +35,21 @@ YAML_OVERRIDES: dict[tuple[str, str], str] = {
 IDS = [module.NAME for module in NODES]
 
 
+def _flat(tree: dict, prefix: str = "") -> dict:
+    """Nested YAML maps as ROS reads a params file: ``gains: {j1: {p: 1}}`` is ``gains.j1.p``."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def _yaml_parameters(module) -> dict:
     data = yaml.safe_load((CONFIG / NODES[module]).read_text(encoding="utf-8"))
     assert list(data) == [module.NAME], f"{NODES[module]}: one top-level key, the node name"
-    return data[module.NAME]["ros__parameters"]
+    return _flat(data[module.NAME]["ros__parameters"])
 
 
 def _plain(value):
@@ -175,3 +186,14 @@ def test_only_the_named_parameters_change_at_run_time(ros_context):
     assert ok.successful and seen == [123.5]
     assert not refused.successful and "read at start only" in refused.reason
     assert fps == 30.0  # unchanged
+
+
+def test_controller_declares_per_joint_parameters_for_its_own_joints():
+    """gains.<joint>.* and constraints.<joint>.* follow the joints (JTC's layout): the
+    table for fr3_ joints names fr3_joint1..7, with the same defaults."""
+    fr3 = controller.joint_parameters([f"fr3_joint{i}" for i in range(1, 8)])
+    panda = [p for p in controller.PARAMETERS if p.name.startswith(("gains.", "constraints.p"))]
+    assert [p.name.replace("fr3_", "panda_") for p in fr3] == [p.name for p in panda]
+    assert [p.default for p in fr3] == [p.default for p in panda]
+    assert {"gains.fr3_joint7.ff_velocity_scale", "constraints.fr3_joint1.trajectory",
+            "constraints.fr3_joint1.goal"} <= {p.name for p in fr3}

@@ -1,0 +1,360 @@
+"""The controller's JTC semantics, black-box over DDS (ros2_controllers' JTC test list).
+
+Two closed loops, each a controller process from ``config/controller.yaml`` with a fake
+planner heartbeat:
+
+- ``arm``: with mock_panda, all defaults. Hold on start-up, jumbled joint order, partial
+  joints refused, invalid messages (empty, NaN, non-increasing times, non-zero final
+  velocity, too fast to follow), replace, ignore an old trajectory, a future stamp
+  approached, no overshoot on a plain move, and trajectories sent while the joint states
+  are paused (mock_panda SIGSTOPped): every one is either executed or refused with a line.
+- ``blocked``: a mock_panda whose command topic is remapped away, so it publishes joint
+  states of an arm that never moves (a blocked arm), and a controller with tolerances on:
+  path tolerance abort-and-hold, goal tolerance with ``goal_time``, partial joints allowed.
+
+Every wait is bounded; assertions are on behaviour (rejected with a reason, moved or not,
+which side of the goal) with margins that hold on a loaded 2-core machine.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import rosutil
+from builtin_interfaces.msg import Duration
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from damon_ros.ros import topics
+from damon_ros.ros.environment import node_environment
+from damon_ros.ros.launch import read_log
+
+CONFIG = rosutil.ROOT / "config"
+NAMES = [f"panda_joint{i}" for i in range(1, 8)]
+ACCEPTED, REJECTED = "accepted trajectory", "rejected trajectory"
+
+
+def trajectory(times, positions, velocities=None, names=NAMES, stamp_ns: int = 0
+               ) -> JointTrajectory:
+    msg = JointTrajectory(joint_names=list(names))
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    for k, t in enumerate(times):
+        sec = int(t)
+        point = JointTrajectoryPoint(
+            positions=[float(x) for x in positions[k]],
+            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9))))
+        if velocities is not None:
+            point.velocities = [float(x) for x in velocities[k]]
+        msg.points.append(point)
+    return msg
+
+
+@dataclass
+class Loop:
+    ros: rosutil.RosClient
+    mock: object
+    controller: object
+    heartbeat: object
+    states: rosutil.Recorder
+    commands: rosutil.Recorder
+    controller_state: rosutil.Recorder
+    pub: object
+    commands_before_first_state: int = -1
+
+    def q(self) -> np.ndarray:
+        return np.array(self.states.last.position)
+
+    def lines(self, needle: str) -> list[str]:
+        return rosutil.log_lines(self.controller, needle)
+
+    def logs(self) -> str:
+        return ("\n--- controller ---\n" + read_log(self.controller)[-4000:]
+                + "\n--- mock_panda ---\n" + read_log(self.mock)[-2000:])
+
+    def settle(self, timeout_s: float = 4.0) -> bool:
+        def still() -> bool:
+            recent = self.states.messages[-100:]
+            return len(recent) == 100 and max(
+                np.max(np.abs(m.velocity)) for m in recent) < 1e-4
+        return self.ros.spin_until(still, timeout_s)
+
+    def send(self, msg: JointTrajectory, timeout_s: float = 3.0) -> str:
+        """Publish and return the controller's answer: its accepted/rejected line."""
+        before = len(self.lines(ACCEPTED)) + len(self.lines(REJECTED))
+        self.pub.publish(msg)
+        self.ros.spin_until(
+            lambda: len(self.lines(ACCEPTED)) + len(self.lines(REJECTED)) > before, timeout_s)
+        answers = [line for line in read_log(self.controller).splitlines()
+                   if ACCEPTED in line or REJECTED in line]
+        assert len(answers) == before + 1, self.logs()  # exactly one answer, none silent
+        return answers[-1]
+
+    def now_ns(self) -> int:
+        return self.ros.node.get_clock().now().nanoseconds
+
+
+def _start(ros, env, tmp, name: str, controller_params: dict, remaps=None) -> Loop:
+    controller = rosutil.start_node("controller", controller_params, env,
+                                    tmp / f"{name}_controller.log",
+                                    params_file=CONFIG / "controller.yaml")
+    loop = Loop(ros, None, controller, rosutil.start_heartbeat(env, tmp / f"{name}_hb.log"),
+                ros.record(JointState, topics.JOINT_STATES),
+                ros.record(Float64MultiArray, topics.JOINT_COMMANDS),
+                ros.record(JointState, topics.CONTROLLER_STATE),
+                ros.publisher(JointTrajectory, topics.JOINT_TRAJECTORY))
+    assert ros.wait_for_publishers(topics.JOINT_COMMANDS, 1, 60.0), loop.logs()
+    ros.spin_for(0.3)
+    loop.commands_before_first_state = len(loop.commands)
+    loop.mock = rosutil.start_node("mock_panda", None, env, tmp / f"{name}_mock.log",
+                                   params_file=CONFIG / "mock_panda.yaml", remaps=remaps)
+    assert ros.spin_until(lambda: len(loop.commands) > 10 and len(loop.states) > 10,
+                          60.0), loop.logs()
+    assert ros.wait_for_subscribers(loop.pub, 1, 10.0), loop.logs()
+    ros.spin_for(0.5)  # the heartbeat has been seen
+    return loop
+
+
+def _stop(loop: Loop | None) -> None:
+    if loop is None:
+        return
+    for proc in (loop.controller, loop.mock, loop.heartbeat):
+        if proc is not None:
+            rosutil.stop_node(proc, first_signal=signal.SIGTERM)
+
+
+@pytest.fixture(scope="module")
+def arm(tmp_path_factory):
+    domain = rosutil.next_domain_id(__file__)
+    tmp = tmp_path_factory.mktemp("jtc_arm")
+    env = node_environment(domain, tmp)
+    loop = None
+    try:
+        with rosutil.RosClient(domain) as ros:
+            loop = _start(ros, env, tmp, "arm", {})
+            yield loop
+    finally:
+        _stop(loop)
+
+
+@pytest.fixture(scope="module")
+def blocked(tmp_path_factory):
+    domain = rosutil.next_domain_id(__file__)
+    tmp = tmp_path_factory.mktemp("jtc_blocked")
+    env = node_environment(domain, tmp)
+    params = {"allow_partial_joints_goal": True, "constraints.panda_joint1.trajectory": 0.05,
+              "constraints.panda_joint3.goal": 0.001, "constraints.goal_time": 0.2}
+    loop = None
+    try:
+        with rosutil.RosClient(domain) as ros:
+            loop = _start(ros, env, tmp, "blocked", params,
+                          remaps={topics.JOINT_COMMANDS: "/damon_test/nowhere"})
+            yield loop
+    finally:
+        _stop(loop)
+
+
+# ----------------------------------------------------------------------------- arm
+
+def test_holds_on_start_up(arm: Loop):
+    assert arm.commands_before_first_state == 0  # nothing before the first joint state
+    assert arm.settle(), arm.logs()
+    q0 = arm.q()
+    arm.ros.spin_for(0.3)
+    assert np.max(np.abs(arm.q() - q0)) < 1e-4
+    np.testing.assert_allclose(arm.controller_state.last.position, q0, atol=1e-3)
+    assert np.max(np.abs(arm.commands.last.data)) < 1e-3
+
+
+def _move(arm: Loop, delta, duration=1.5, order=None) -> tuple[np.ndarray, str]:
+    q0 = arm.q()
+    goal = q0 + np.asarray(delta, dtype=float)
+    order = list(range(7)) if order is None else order
+    line = arm.send(trajectory([duration], [goal[order]], [np.zeros(7)],
+                               names=[NAMES[j] for j in order]))
+    return goal, line
+
+
+def _reached(arm: Loop, goal: np.ndarray, tol: float, timeout_s: float = 5.0) -> bool:
+    return arm.ros.spin_until(lambda: np.max(np.abs(arm.q() - goal)) < tol, timeout_s)
+
+
+STALLS = ("joint states stale", f"no {topics.PLANNER_STATUS}")
+"""Logged stops a stall of this shared machine causes (states or heartbeat late): the
+controller must answer them by stopping, so they excuse one failed attempt, no more."""
+
+
+def _stalls(arm: Loop) -> int:
+    return sum(len(arm.lines(needle)) for needle in STALLS)
+
+
+def _move_and_reach(arm: Loop, delta, duration=1.0, order=None) -> np.ndarray:
+    for _ in range(2):
+        assert arm.settle(), arm.logs()
+        stalls = _stalls(arm)
+        goal, line = _move(arm, delta, duration, order)
+        assert ACCEPTED in line, line
+        if _reached(arm, goal, 2e-3) or _stalls(arm) == stalls:
+            break
+    assert _reached(arm, goal, 2e-3, 0.1), arm.logs()
+    return goal
+
+
+def test_jumbled_joint_order_is_accepted_and_mapped_by_name(arm: Loop):
+    _move_and_reach(arm, [0.1, -0.1, 0.1, 0.1, -0.1, 0.1, 0.2], 1.0, [6, 0, 3, 1, 5, 2, 4])
+
+
+def test_plain_move_settles_without_overshoot(arm: Loop):
+    """0.3 rad on joint 1 in 1.5 s: the joint never passes the goal by more than 0.3 mrad
+    (before the velocity lead: 1-3 mrad, then back) and ends within 1 mrad."""
+    assert arm.settle()
+    for _ in range(2):  # a logged stale-state abort (a stall of this machine) spoils one try
+        stale = _stalls(arm)
+        k = len(arm.states)
+        goal, line = _move(arm, [0.3, 0, 0, 0, 0, 0, 0])
+        assert ACCEPTED in line, line
+        reached = _reached(arm, goal, 1e-3)
+        arm.ros.spin_for(1.0)
+        if reached or _stalls(arm) == stale:
+            break
+        assert arm.settle()
+    assert reached, arm.logs()
+    j1 = np.array([m.position[0] for m in arm.states.messages[k:]])
+    past = float(np.max(j1 - goal[0]))
+    print(f"\nplain 0.3 rad move: largest excursion past the goal {1e3 * past:.3f} mrad")
+    assert past < 3e-4, past
+    assert abs(j1[-1] - goal[0]) < 1e-3
+    assert arm.lines("goal reached"), arm.logs()
+
+
+@pytest.mark.parametrize("case", ["empty", "nan", "times", "end velocity", "too fast",
+                                  "partial", "old"])
+def test_invalid_trajectories_are_rejected_with_a_reason_and_the_arm_stays(arm: Loop, case):
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + 0.05
+    times, rows, vel, names, stamp = [0.5, 1.0], np.array([q0 + 0.02, goal]), None, NAMES, 0
+    if case == "nan":
+        rows[1, 3] = np.nan
+    elif case == "times":
+        times = [1.0, 0.5]
+    elif case == "end velocity":
+        vel = np.zeros((2, 7))
+        vel[1, 2] = 0.05
+    elif case == "too fast":
+        times, rows = [0.02, 0.04], np.array([q0 + 0.1, q0 + 0.3])
+    elif case == "partial":
+        names, rows = NAMES[:3], rows[:, :3]
+    elif case == "old":
+        stamp = arm.now_ns() - 10_000_000_000
+    msg = trajectory(times, rows, vel, names, stamp)
+    if case == "empty":
+        msg.points = []
+    line = arm.send(msg)
+    expected = {"empty": "no points", "nan": "NaN", "times": "strictly increasing",
+                "end velocity": "allow_nonzero_velocity_at_trajectory_end",
+                "too fast": "cannot be followed within the limits",
+                "partial": "allow_partial_joints_goal", "old": "ends in the past"}[case]
+    assert REJECTED in line and expected in line, line
+    arm.ros.spin_for(0.3)
+    assert np.max(np.abs(arm.q() - q0)) < 1e-4
+
+
+def test_a_new_trajectory_replaces_the_old_one(arm: Loop):
+    assert arm.settle()
+    q0 = arm.q()
+    first = q0 + np.array([0.3, 0, 0, 0, 0, 0, 0])
+    assert ACCEPTED in arm.send(trajectory([3.0], [first], [np.zeros(7)]))
+    assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.01, 3.0), arm.logs()
+    second = q0 + np.array([-0.05, 0, 0, 0, 0, 0, 0])
+    assert ACCEPTED in arm.send(trajectory([1.0], [second], [np.zeros(7)]))
+    assert _reached(arm, second, 2e-3), arm.logs()
+    assert max(m.position[0] for m in arm.states.messages[-3000:]) < first[0] - 0.1
+
+
+def test_a_future_stamp_is_approached_not_waited_for(arm: Loop):
+    """Stamped 1.5 s ahead with its one point at time_from_start 0.5: the arm starts at
+    once (JTC: interpolate from the current state) and arrives about 2 s after sending."""
+    assert arm.settle()
+    q0 = arm.q()
+    goal = q0 + np.array([0, 0.2, 0, 0, 0, 0, 0])
+    sent = time.time()
+    stamp = arm.now_ns() + 1_500_000_000
+    line = arm.send(trajectory([0.5], [goal], [np.zeros(7)], stamp_ns=stamp))
+    assert ACCEPTED in line and "starting at" in line, line
+    assert _reached(arm, goal, 2e-3, 6.0), arm.logs()
+    moved = next(src for src, m in arm.states.published_after(sent)
+                 if m.position[1] > q0[1] + 0.01)
+    arrived = next(src for src, m in arm.states.published_after(sent)
+                   if abs(m.position[1] - goal[1]) < 2e-3)
+    assert moved - sent < 1.2, moved - sent  # long before the stamp (1.5 s)
+    assert 1.7 < arrived - sent < 3.0, arrived - sent
+
+
+def test_trajectories_sent_while_joint_states_are_paused_are_answered(arm: Loop):
+    """mock_panda frozen: the controller stops; each trajectory sent meanwhile is refused
+    with a line naming the stale states (none is dropped silently, none runs later by
+    surprise); once states are back a new one runs."""
+    assert arm.settle()
+    q0 = arm.q()
+    stale = len(arm.lines("joint states stale"))
+    arm.mock.send_signal(signal.SIGSTOP)
+    try:
+        assert arm.ros.spin_until(lambda: len(arm.lines("joint states stale")) > stale, 5.0)
+        answers = [arm.send(trajectory([1.0], [q0 + 0.05], [np.zeros(7)])) for _ in range(3)]
+    finally:
+        arm.mock.send_signal(signal.SIGCONT)
+    for line in answers:
+        assert REJECTED in line and "stale" in line, line
+    assert arm.ros.spin_until(lambda: bool(arm.lines("joint states are back")), 5.0)
+    assert arm.settle()
+    assert np.max(np.abs(arm.q() - q0)) < 2e-3  # the refused ones never ran
+    _move_and_reach(arm, [0.05, 0, 0, 0, 0, 0, 0], 1.0)
+
+
+# ----------------------------------------------------------------------------- blocked
+
+def _desired(loop: Loop) -> np.ndarray:
+    return np.array(loop.controller_state.last.position)
+
+
+def test_path_tolerance_aborts_and_holds_the_measured_position(blocked: Loop):
+    q = blocked.q()
+    line = blocked.send(trajectory([1.0], [q + np.array([0.3, 0, 0, 0, 0, 0, 0])],
+                                   [np.zeros(7)]))
+    assert ACCEPTED in line, line
+    assert blocked.ros.spin_until(lambda: bool(blocked.lines("path tolerance violated")), 3.0)
+    assert "panda_joint1" in blocked.lines("path tolerance violated")[-1]
+    blocked.ros.spin_for(0.2)
+    np.testing.assert_allclose(_desired(blocked), q, atol=1e-6)  # holds where it is
+
+
+def test_goal_not_reached_within_goal_time_aborts(blocked: Loop):
+    q = blocked.q()
+    before = len(blocked.lines("goal not reached"))
+    sent = time.monotonic()
+    line = blocked.send(trajectory([0.3], [q + np.array([0, 0, 0.01, 0, 0, 0, 0])],
+                                   [np.zeros(7)]))
+    assert ACCEPTED in line, line
+    assert blocked.ros.spin_until(lambda: len(blocked.lines("goal not reached")) > before, 3.0)
+    assert time.monotonic() - sent > 0.5 - 0.05  # not before the end + goal_time
+    assert "panda_joint3" in blocked.lines("goal not reached")[-1]
+    blocked.ros.spin_for(0.2)
+    np.testing.assert_allclose(_desired(blocked), q, atol=1e-6)
+
+
+def test_partial_joints_when_allowed_hold_the_others(blocked: Loop):
+    q = blocked.q()
+    named = [4, 1]
+    line = blocked.send(trajectory([1.0], [q[named] + 0.02], [np.zeros(2)],
+                                   names=[NAMES[j] for j in named]))
+    assert ACCEPTED in line and "2 of 7 joints" in line, line
+    blocked.ros.spin_for(1.2)
+    desired = _desired(blocked)
+    others = [j for j in range(7) if j not in named]
+    np.testing.assert_allclose(desired[others], q[others], atol=1e-9)
+    np.testing.assert_allclose(desired[named], q[named] + 0.02, atol=1e-6)
