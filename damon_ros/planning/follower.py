@@ -365,7 +365,16 @@ DEFAULT_VELOCITY_LEAD_S = 0.04
 """s: the feed-forward velocity is the desired one this far ahead (`TrajectoryFollower`)."""
 
 FEASIBILITY_TOLERANCE = 1e-6
-"""Relative slack of the feasibility check over the limits (rounding of the spline)."""
+"""rad: slack of the feasibility check over the position limits (rounding of the spline)."""
+
+VELOCITY_SLACK = 0.01
+ACCELERATION_SLACK = 0.25
+"""Relative slack of the feasibility check over the velocity and acceleration limits. The
+quintic through the samples of a trajectory that is itself within the limits bulges between
+them: measured on 400 random moves time-parameterised at full and half scale, by up to
+0.2 % in velocity and 12 % in acceleration. The command shaper absorbs that much without a
+visible lag; the check is there for trajectories that are really too fast (a move timed at
+twice the limit), which it refuses instead of following late."""
 
 VELOCITY_FILTER_S = 0.01
 """s: time constant of the measured-velocity estimate used for ``stopped_velocity``."""
@@ -390,11 +399,11 @@ def _feasibility(spline: Spline, limits: JointLimits) -> str | None:
     velocity at every point by definition, and the shaper rounds those steps off.
     """
     q, qd, qdd = spline.sample()
-    slack = 1.0 + FEASIBILITY_TOLERANCE
     for what, bad in (("position", (q < limits.lower - FEASIBILITY_TOLERANCE)
                        | (q > limits.upper + FEASIBILITY_TOLERANCE)),
-                      ("velocity", np.abs(qd) > limits.velocity * slack),
-                      ("acceleration", np.abs(qdd) > limits.acceleration * slack
+                      ("velocity", np.abs(qd) > limits.velocity * (1.0 + VELOCITY_SLACK)),
+                      ("acceleration", np.abs(qdd) > limits.acceleration
+                       * (1.0 + ACCELERATION_SLACK)
                        if spline.order >= 3 else np.zeros_like(q, dtype=bool))):
         if np.any(bad):
             k, j = np.argwhere(bad)[0]

@@ -258,7 +258,7 @@ def test_renders_a_three_obstacle_frame_faster_than_the_camera_rate():
     assert len(scene) == 3
     rng = np.random.default_rng(0)
     render(camera, scene, 0.002, 0.01, rng)
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: other processes on the machine do not count
     for _ in range(20):
         render(camera, scene, 0.002, 0.01, rng)
-    assert (time.perf_counter() - start) / 20 < 1.0 / 30.0
+    assert (time.process_time() - start) / 20 < 1.0 / 30.0
