@@ -26,7 +26,7 @@ import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig
+from ruckig import ControlInterface, InputParameter, Result, Ruckig
 from ruckig import Trajectory as _RuckigTrajectory
 
 from damon_ros.core.limits import JointLimits
@@ -377,3 +377,71 @@ def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> T
         q[rows], qd[rows], qdd[rows] = seg.at(times[rows] - starts[i])
     q[-1], qd[-1], qdd[-1] = goal, 0.0, 0.0
     return Trajectory(times, q, qd, qdd)
+
+
+# ----------------------------------------------------------------------------- stops
+
+HOLD_S = 0.1
+"""s: time_from_start of a one-point hold. JTC needs it > 0 (it interpolates from its
+current state to the point over that time); 0.1 s stops an arm creeping at 0.01 rad/s with
+0.1 rad/s^2."""
+AT_REST_RAD_S = 0.01
+"""rad/s: below this on every joint an arm is stopped by a one-point hold, not a brake."""
+
+
+def stop_trajectory(q, qd, limits: JointLimits, coast_s: float = 0.0,
+                    dt: float = 0.01) -> Trajectory:
+    """The motion that stops an arm at ``q`` moving at ``qd``, as a trajectory every joint
+    trajectory controller executes (Jazzy JTC rejects an empty one and keeps going).
+
+    At rest (or ``qd`` None, unknown): a hold at ``q`` reached after `HOLD_S`. Moving: it
+    coasts at ``qd`` for ``coast_s`` (the time until the trajectory reaches the controller:
+    the arm is there by then), then brakes to rest at ``limits``' acceleration and jerk,
+    phase-synchronised — every joint's velocity is ``qd`` times one jerk-limited profile
+    falling from 1 to 0 — so the arm stays on the straight line along ``qd`` that the
+    planner certifies (`GraphPlanner.braking_point` is this trajectory's end). Velocities
+    start clipped to the limits (a measured overshoot must not make a controller refuse the
+    stop); the last point has zero velocity and acceleration, as JTC requires.
+    """
+    q = np.asarray(q, dtype=float)
+    if qd is None or not np.all(np.isfinite(qd)) or np.max(np.abs(qd)) < AT_REST_RAD_S:
+        zero = np.zeros((2, q.size))
+        return Trajectory(np.array([0.0, HOLD_S]), np.vstack((q, q)), zero, zero.copy())
+    qd = np.clip(np.asarray(qd, dtype=float), -limits.velocity, limits.velocity)
+    moving = np.abs(qd) > 0.0
+    speed = np.abs(qd[moving])
+    inp = InputParameter(1)
+    inp.control_interface = ControlInterface.Velocity
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [1.0], [0.0]
+    inp.target_velocity, inp.target_acceleration = [0.0], [0.0]
+    inp.max_velocity = [1.0]
+    inp.max_acceleration = [float(np.min(limits.acceleration[moving] / speed))]
+    inp.max_jerk = [float(np.min(limits.jerk[moving] / speed))]
+    brake = _RuckigTrajectory(1)
+    if Ruckig(1).calculate(inp, brake) != Result.Working:
+        raise ValueError("ruckig could not compute a braking profile")
+    coast_s = max(float(coast_s), 0.0)
+    total = coast_s + float(brake.duration)
+    times = _with_knots(time_grid(total, dt), np.array([coast_s]) if coast_s else
+                        np.zeros(0), dt)
+    s, sd, sdd = np.empty(times.size), np.empty(times.size), np.empty(times.size)
+    for k, t in enumerate(times):
+        if t <= coast_s:
+            s[k], sd[k], sdd[k] = t, 1.0, 0.0
+        else:
+            p, v, a = brake.at_time(t - coast_s)[:3]
+            s[k], sd[k], sdd[k] = coast_s + p[0], v[0], a[0]
+    sd[-1] = sdd[-1] = 0.0
+    positions = np.clip(q + np.outer(s, qd), limits.lower, limits.upper)
+    return Trajectory(times, positions, np.outer(sd, qd), np.outer(sdd, qd))
+
+
+def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
+    """``second`` after ``first`` (which must end where ``second`` starts, both at rest)."""
+    if np.max(np.abs(first.positions[-1] - second.positions[0])) > 1e-9:
+        raise ValueError("trajectories to concatenate must meet")
+    return Trajectory(np.concatenate((first.times, first.duration + second.times[1:])),
+                      *(np.vstack((a, b[1:])) for a, b in (
+                          (first.positions, second.positions),
+                          (first.velocities, second.velocities),
+                          (first.accelerations, second.accelerations))))
