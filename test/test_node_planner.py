@@ -271,7 +271,7 @@ def test_a_bad_joint_state_is_ignored_by_planner_and_controller(cell: Cell, case
 
 @pytest.mark.parametrize(("case", "words"), [
     ("nan", "position [0.3, nan, 0.8] is not finite"),
-    ("absurd size", "scale [50.0, 50.0, 50.0] must be > 0 and <= 3.0 m"),
+    ("absurd size", "scale [50.0, 50.0, 50.0] must be <= 3.0 m"),
     ("unknown type", "TEXT_VIEW_FACING"),
 ])
 def test_a_bad_marker_is_refused_with_one_line(cell: Cell, case, words):
