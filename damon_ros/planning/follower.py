@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from damon_ros.core.limits import JointLimits
+from damon_ros.core.limits import POSITION_LIMIT_MARGIN, JointLimits
 from damon_ros.planning.trajectory import METHODS, Spline
 
 # Fraction of the acceleration limit used for the braking curve before a position limit; the
@@ -25,10 +25,6 @@ POSITION_BRAKE_FRACTION = 0.5
 BOUND_LOOKAHEAD_RAD = 0.005
 """rad: position-dependent velocity bounds are read this much nearer the limit (3-10 mrad/s
 below libfranka's curve), so the shaped command, which trails its target, stays under it."""
-POSITION_LIMIT_MARGIN = 0.01
-"""rad: the command brakes to a stop this far inside each position limit. Braking to the
-limit itself let the actuator's lag carry the mock arm onto it (the soak's limit monitor
-counted joint 1 reaching 2.8973 rad); a Franka stops with a reflex there."""
 
 
 def _per_joint(name: str, value, n: int) -> np.ndarray:

@@ -10,7 +10,6 @@ contact, so scripts can rely on it. Plots and an animation land in ``--out``.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import tempfile
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from damon_ros.ros import topics
-from damon_ros.ros.environment import ros_environment
+from damon_ros.ros.environment import node_environment, ros_environment
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
@@ -85,9 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     from damon_ros.ros.launch import read_log, start_node, stop_node
 
-    env = dict(os.environ, PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0",
-               ROS_LOG_DIR=str(Path(tempfile.gettempdir()) / "damon_demo_ros_logs"))
-    env.update(ros_environment(domain))
+    env = node_environment(domain, Path(tempfile.gettempdir()) / "damon_demo_ros_logs")
     os.environ.update(ros_environment(domain))  # the demo's own rclpy joins the same graph
     start_time = time.time() + args.startup_s
     common = {"scenario": str(path.resolve()), "scenario_start_time_s": start_time}
@@ -207,6 +204,8 @@ def _goal_message(scenario, node):
 def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
             t_goal: float, procs: dict) -> dict:
     """Sample the arm until the goal is held, contact, or the scenario's time limit."""
+    from damon_ros.core.kinematics import pose_error
+
     goal = scenario.goal
     held_since, next_check = None, 0.0
     deadline = start_time + scenario.time_limit
@@ -228,9 +227,7 @@ def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
         rec.clearance.append(d)
         if d <= 0.0:
             return {"collided": True, "reason": f"contact at t = {t:.2f} s"}
-        position, quat = mesh.tcp_pose(q)
-        p_err = float(np.linalg.norm(position - goal.position))
-        o_err = 2 * math.acos(min(1.0, abs(float(quat @ goal.orientation))))
+        p_err, o_err = pose_error(*mesh.tcp_pose(q), goal.position, goal.orientation)
         if p_err <= goal.position_tolerance and o_err <= goal.orientation_tolerance and \
                 float(np.max(np.abs(qd))) < 0.02:
             held_since = held_since or now
