@@ -23,6 +23,7 @@ from visualization_msgs.msg import MarkerArray
 from damon_ros.core.limits import READY
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
+from damon_ros.ros import launch
 from damon_ros.ros.markers import shape_to_marker
 
 CONFIG = rosutil.ROOT / "config"
@@ -67,9 +68,9 @@ def test_planner_and_controller_under_a_namespace_with_the_franka_parameter_set(
             for name, (params, extra, args) in nodes.items():
                 ros_args = NS_ARGS + args + ([] if extra is None else
                                              ["--params-file", str(extra)])
-                procs[name] = rosutil.start_node(name, params, env, tmp_path / f"{name}.log",
-                                                 params_file=CONFIG / f"{name}.yaml",
-                                                 ros_args=ros_args)
+                procs[name] = launch.start_node(name, params, env, tmp_path / f"{name}.log",
+                                                params_file=CONFIG / f"{name}.yaml",
+                                                ros_args=ros_args, cwd=rosutil.ROOT)
 
             def logs() -> str:
                 return "".join(f"\n--- {n} ---\n{rosutil.read_log(p)[-2500:]}"
