@@ -24,6 +24,7 @@ from damon_ros.core.limits import READY
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
 from damon_ros.ros import launch
+from damon_ros.ros.environment import node_environment
 from damon_ros.ros.markers import shape_to_marker
 
 CONFIG = rosutil.ROOT / "config"
@@ -46,7 +47,7 @@ def _goal(q) -> PoseStamped:
 
 def test_planner_and_controller_under_a_namespace_with_the_franka_parameter_set(tmp_path):
     domain = rosutil.next_domain_id(__file__)
-    env = rosutil.node_env(domain, tmp_path)
+    env = node_environment(domain, tmp_path)
     procs: dict[str, subprocess.Popen] = {}
     nodes = {
         "mock_panda": ({"joint_prefix": "fr3_", "limit_profile": "fr3", "rate_hz": 500.0},
@@ -76,9 +77,9 @@ def test_planner_and_controller_under_a_namespace_with_the_franka_parameter_set(
                 return "".join(f"\n--- {n} ---\n{rosutil.read_log(p)[-2500:]}"
                                for n, p in procs.items())
 
-            assert ros.spin_until(lambda: all(rosutil.log_lines(procs["planner"],
-                                                                "planner ready")), 120.0), logs()
-            assert ros.spin_until(lambda: len(states) > 20, 30.0), logs()
+            assert ros.spin_until(lambda: bool(rosutil.log_lines(procs["planner"],
+                                                                 "planner ready")), 180.0), logs()
+            assert ros.spin_until(lambda: len(states) > 20, 60.0), logs()
             assert list(states.last.name) == [f"fr3_joint{i}" for i in range(1, 8)]
             assert ros.wait_for_subscribers(goal_pub, 1, 20.0), logs()
             # nothing in the root namespace: the names were relative
