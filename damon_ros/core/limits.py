@@ -6,6 +6,13 @@ clamps against one of these profiles, so a real Franka would accept what we send
 margins live here together so that their order is visible in one place: the controller
 brakes to a stop :data:`POSITION_LIMIT_MARGIN` inside a limit, and IK goals and planner
 waypoints stay :data:`IK_LIMIT_MARGIN` inside, beyond that braking zone.
+
+Velocity is the one limit that is not a constant on the FR3: libfranka
+(``include/franka/rate_limiting.h``) bounds joint velocity toward each position limit by
+``min(vmax, -c + sqrt(k (p_up - q)))`` (mirrored toward the lower limit), less a tolerance,
+so the arm can always brake before the limit. `JointLimits.velocity_bounds` is that model,
+and the only velocity limit the time parameterisation, the controller's command shaping
+and mock_panda's monitor use; the Panda's bounds are its constants.
 """
 
 from __future__ import annotations
@@ -52,6 +59,31 @@ _PROFILES = {
     },
 }
 
+# libfranka's FR3 position-dependent velocity limits (rate_limiting.h, 2023), per joint:
+# c (rad/s), k (rad/s^2: twice the URDF's deceleration limit), p_up and p_lo (rad: where
+# the bound reaches -c + 0). Toward p_up: v <= min(vmax, max(0, -c + sqrt(k (p_up - q)))).
+_VELOCITY_CURVES = {
+    "fr3": {
+        "c": [0.30, 0.20, 0.20, 0.30, 0.35, 0.35, 0.35],
+        "k": [12.0, 5.17, 7.0, 8.0, 34.0, 11.0, 34.0],
+        "p_up": [2.7501, 1.7918, 2.9065, -0.1458, 2.8101, 4.5205, 3.0196],
+        "p_lo": [-2.7501, -1.7918, -2.9065, -3.0481, -2.8101, 0.54092, -3.0196],
+    },
+}
+VELOCITY_TOLERANCE = 1e-3
+"""libfranka's margin under each velocity bound: kLimitEps (1e-3) + kTolNumberPacketsLost (0
+on the FR3) x 1e-3 x max_acc. Bounds are this much inside the curve."""
+
+
+@dataclass(frozen=True)
+class VelocityCurve:
+    """libfranka's position-dependent velocity bound parameters, one value per joint."""
+
+    c: np.ndarray
+    k: np.ndarray
+    p_up: np.ndarray
+    p_lo: np.ndarray
+
 PROFILES = tuple(_PROFILES)
 
 
@@ -66,6 +98,35 @@ class JointLimits:
     velocity: np.ndarray
     acceleration: np.ndarray
     jerk: np.ndarray
+    curve: VelocityCurve | None = None  # None: constant velocity limits (the Panda)
+    velocity_scale: float = 1.0  # the fraction of the curve that `velocity_bounds` allows
+
+    def velocity_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) joint velocity bounds (rad/s) at positions ``q``.
+
+        The Panda's are its constants (scaled with `scaled`). The FR3's follow libfranka:
+        ``upper = min(vmax, max(0, -c + sqrt(max(0, k (p_up - q))))) - tol`` and the mirror
+        image toward ``p_lo``, tol = `VELOCITY_TOLERANCE`; with a velocity scale s below 1
+        both are multiplied by s (the tolerance too: a scaled bound stays inside the
+        curve). ``q`` may be one state (7,) or many (N, 7). Close to a position limit
+        ``upper`` is slightly negative: libfranka then only lets the joint move away.
+        """
+        q = np.asarray(q, dtype=float)
+        if self.curve is None:
+            upper = np.broadcast_to(self.velocity, q.shape).copy()
+            return -upper, upper
+        c, vmax = self.curve, self.velocity / self.velocity_scale  # the unscaled vmax
+        up_room = np.sqrt(np.maximum(0.0, c.k * (c.p_up - q)))
+        lo_room = np.sqrt(np.maximum(0.0, c.k * (q - c.p_lo)))
+        upper = np.minimum(vmax, np.maximum(0.0, up_room - c.c)) - VELOCITY_TOLERANCE
+        lower = np.maximum(-vmax, np.minimum(0.0, c.c - lo_room)) + VELOCITY_TOLERANCE
+        return self.velocity_scale * lower, self.velocity_scale * upper
+
+    def velocity_excess(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """How far each joint velocity ``qd`` at ``q`` lies beyond its bound (0 within)."""
+        lower, upper = self.velocity_bounds(q)
+        qd = np.asarray(qd, dtype=float)
+        return np.maximum(np.maximum(qd - upper, lower - qd), 0.0)
 
     def within(self, q: np.ndarray, tolerance: float = 0.0) -> bool:
         """True when every joint position lies inside its range (widened by ``tolerance``)."""
@@ -83,6 +144,7 @@ class JointLimits:
         return JointLimits(
             self.profile, self.names, self.lower, self.upper,
             self.velocity * velocity, self.acceleration * acceleration, self.jerk * jerk,
+            self.curve, self.velocity_scale * velocity,
         )
 
 
@@ -92,8 +154,11 @@ def joint_limits(profile: str = "panda", prefix: str | None = None) -> JointLimi
         raise ValueError(f"unknown limit profile {profile!r}; expected one of {PROFILES}")
     table = _PROFILES[profile]
     prefix = table["prefix"] if prefix is None else prefix
+    curve = _VELOCITY_CURVES.get(profile)
     return JointLimits(
         profile=profile,
         names=tuple(f"{prefix}joint{i}" for i in range(1, 8)),
         **{k: np.array(v, dtype=float) for k, v in table.items() if k != "prefix"},
+        curve=None if curve is None else VelocityCurve(
+            **{k: np.array(v, dtype=float) for k, v in curve.items()}),
     )

@@ -107,6 +107,8 @@ BASE_PARAMETERS = (
     Param("constraints.stopped_velocity_tolerance", _TOLERANCES.stopped_velocity,
           "the goal is reached only below this joint speed; 0: not checked (rad/s)",
           0.0, 10.0),
+    Param("joint_states_topic", topics.JOINT_STATES,
+          "joint states in (franka/joint_states for franka_ros2: 1 kHz; joint_states is 30 Hz)"),
     Param("joint_state_timeout_s", 0.1,
           "older joint states abort the trajectory and brake the arm; the stop begins at "
           "most this + one period after the last state (s)", 0.001, 10.0),
@@ -191,7 +193,7 @@ class Controller(Node):
         self._state_every = max(1, round(p["rate_hz"] / p["state_rate_hz"]))
         self._cmd_pub = self.create_publisher(Float64MultiArray, topics.JOINT_COMMANDS, 10)
         self._state_pub = self.create_publisher(JointState, topics.CONTROLLER_STATE, 10)
-        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, 10)
+        self.create_subscription(JointState, p["joint_states_topic"], self._on_joint_state, 10)
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, 10)
         self.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, self._on_heartbeat, 10)
         self._loop = start_loop(self, NAME, p["rate_hz"], self._tick, "control loop",

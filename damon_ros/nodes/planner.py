@@ -50,6 +50,8 @@ PARAMETERS = (
     Param("base_frame", "panda_link0", "frame of goals, obstacles and paths"),
     Param("trajectory_topic", topics.JOINT_TRAJECTORY, "where trajectories go "
           "(/fr3_arm_controller/joint_trajectory for franka_ros2's JTC)"),
+    Param("joint_states_topic", topics.JOINT_STATES, "joint states in (franka/joint_states "
+          "for franka_ros2: 1 kHz; its joint_states is the broadcaster's 30 Hz)"),
     Param("margin", 0.01,
           "λ: clearance (m) required on top of the conservative collision model", 0.0, 0.5),
     Param("resolution", 0.02, "rad between checked states along a path segment", 0.001, 0.1),
@@ -63,6 +65,8 @@ PARAMETERS = (
           0.5, 1000.0),
     Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
           "(s; 0 = off, for a setup without perception)", 0.0, 60.0),
+    Param("goal_wait_timeout_s", 5.0, "a goal waiting for obstacle data is dropped after "
+          "this long (s), never started by surprise later", 0.1, 3600.0),
     Param("joint_state_period_s", 0.005, "joint states are taken every this many s",
           0.001, 1.0),
     Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
@@ -103,15 +107,21 @@ class PlannerNode(Node):
         self._vertex_tcp = self.robot.tcp_positions(self.model.graph.q)
         self.runtime = ReactivePlanner(planner, RuntimeConfig(
             prediction_horizon_s=p["prediction_horizon_s"],
-            perception_timeout_s=p["perception_timeout_s"]),
+            perception_timeout_s=p["perception_timeout_s"],
+            goal_wait_s=p["goal_wait_timeout_s"],
+            obstacle_source=self.resolve_topic_name(topics.OBSTACLES)),
             risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes),
-            on_threat=lambda why: self.pub_traj.publish(self._empty_trajectory()))
+            on_threat=lambda why: self._publish_stop())
         self.base_frame = p["base_frame"]
         self.joint_state_timeout = p["joint_state_timeout_s"]
         self.table = ObstacleTable(self.base_frame)
         self.joint_reader = JointStateReader(self.limits.names)
         # one line per kind of bad input at once, repeats of a kind once per 5 s with a count
         self.problems = ProblemLog(self.get_logger().warning, 5.0)
+        # goal refusals: the same, per kind of refusal (a client retrying at 10 Hz logged
+        # 24 identical lines in 2.4 s)
+        self.refusals = ProblemLog(self.get_logger().error, 5.0)
+        self.joint_states_topic = p["joint_states_topic"]
         self.lock = threading.Lock()  # the latest joint state
         # the runtime and the obstacle table: obstacle arrays arrive on a reader thread,
         # goals, services and the monitor tick on the executor's
@@ -125,7 +135,7 @@ class PlannerNode(Node):
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
         self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
         self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
-        self.joint_states = TopicReader(self, JointState, topics.JOINT_STATES,
+        self.joint_states = TopicReader(self, JointState, p["joint_states_topic"],
                                         p["joint_state_period_s"], self._on_joint_state,
                                         suffix="joint_states")
         self._obstacles_received: float | None = None  # first array of the pending batch
@@ -173,7 +183,8 @@ class PlannerNode(Node):
             self._obstacles_received = time.perf_counter()
         with self.deciding:
             for error in self.table.apply(msg.markers, clock_seconds(self)):
-                self.problems.report(f"obstacle marker refused: {error}")
+                self.problems.report(f"obstacle marker refused: {error}",
+                                     getattr(error, "kind", None))
 
     def _on_obstacles_drained(self) -> None:
         """One decision per batch of obstacle arrays (a decision in a holding arm may search
@@ -189,15 +200,18 @@ class PlannerNode(Node):
 
         problem = goal_problem(msg, self.base_frame)
         if problem:
-            self.get_logger().error(f"goal refused: {problem}")
+            self.refusals.report(f"goal refused: {problem}", problem.kind)
             return None
         q, qd = self._current_state()
         if q is None:
             age = clock_seconds(self) - self.q_stamp
-            self.get_logger().error(
+            topic = self.resolve_topic_name(self.joint_states_topic)
+            self.refusals.report(
                 "goal refused: no fresh joint state (" + (
-                    f"the last one is {age:.2f} s old, limit {self.joint_state_timeout:g} s)"
-                    if math.isfinite(age) else "none yet: is /joint_states published?)"))
+                    f"the last one is {age:.2f} s old, limit joint_state_timeout_s = "
+                    f"{self.joint_state_timeout:g} s)" if math.isfinite(age) else
+                    f"none yet on {topic}: is it published? parameter joint_states_topic)"),
+                "goal.no_joint_state")
             return None
         o = msg.pose.orientation
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
@@ -235,12 +249,13 @@ class PlannerNode(Node):
                      f"{event.latency_ms:.1f} ms ({latency:.1f} ms after the input)"
                      + (f" — {event.reason}" if event.reason else ""))
         elif event.kind == "hold":
-            self.pub_traj.publish(self._empty_trajectory())
+            self._publish_stop()
             log.warn(f"stopping the arm: {event.reason}")
         elif event.kind == "reached":
             log.info("goal reached")
         elif event.kind == "refused":
-            log.error(f"goal refused: {event.reason}")
+            self.refusals.report(f"goal refused: {event.reason}",
+                                 "goal.refused:" + ProblemLog.key(event.reason))
         self.last_event = f"{event.kind}: {event.reason}" if event.reason else event.kind
 
     # ---- outputs ----------------------------------------------------------------------
@@ -250,16 +265,38 @@ class PlannerNode(Node):
         msg.joint_names = list(self.limits.names)
         return msg
 
-    def _publish_trajectory(self, result) -> None:
-        traj = result.trajectory.resample(0.02)
-        msg = self._empty_trajectory()  # header.stamp zero: start on arrival
-        for t, q, qd, qdd in zip(traj.times, traj.positions, traj.velocities,
-                                 traj.accelerations, strict=True):
+    def _trajectory_msg(self, traj, first: int = 0) -> JointTrajectory:
+        """``traj``'s samples from index ``first`` on; header.stamp zero: start on arrival
+        (a stamp in the past would make JTC refuse a late stop whose end has passed)."""
+        msg = self._empty_trajectory()
+        for t, q, qd, qdd in zip(traj.times[first:], traj.positions[first:],
+                                 traj.velocities[first:], traj.accelerations[first:],
+                                 strict=True):
             point = JointTrajectoryPoint(positions=q.tolist(), velocities=qd.tolist(),
                                          accelerations=qdd.tolist())
             point.time_from_start = to_duration(t, "time_from_start")
             msg.points.append(point)
+        return msg
+
+    def _publish_stop(self) -> JointTrajectory | None:
+        """Stop the arm with a trajectory every controller executes (never an empty one:
+        Jazzy JTC rejects it and goes on with the motion just judged unsafe): from the last
+        measured position and velocity, `GraphPlanner.stop_trajectory` — a jerk-limited
+        brake, or a one-point hold at rest. Its first sample (time 0, the measured state)
+        is left out: JTC and our controller start from their current state and interpolate
+        to the first point, whose time_from_start is then > 0."""
+        with self.lock:
+            q, qd = self.q, self.qd
+        if q is None:
+            self.problems.report("no stop sent: no joint state received yet, so the arm has "
+                                 "not been moved by this planner", kind="stop.no_state")
+            return None
+        msg = self._trajectory_msg(self.runtime.planner.stop_trajectory(q, qd), first=1)
         self.pub_traj.publish(msg)
+        return msg
+
+    def _publish_trajectory(self, result) -> None:
+        self.pub_traj.publish(self._trajectory_msg(result.trajectory.resample(0.02)))
         self.pub_path.publish(self._tcp_path(result.path))
         self.pub_graph.publish(self._graph_markers(result))
 

@@ -22,6 +22,9 @@ from damon_ros.planning.trajectory import METHODS, Spline
 # Fraction of the acceleration limit used for the braking curve before a position limit; the
 # rest is headroom for the jerk-limited transition into braking and for tracking lag.
 POSITION_BRAKE_FRACTION = 0.5
+BOUND_LOOKAHEAD_RAD = 0.005
+"""rad: position-dependent velocity bounds are read this much nearer the limit (3-10 mrad/s
+below libfranka's curve), so the shaped command, which trails its target, stays under it."""
 
 
 def _per_joint(name: str, value, n: int) -> np.ndarray:
@@ -287,6 +290,7 @@ class CommandShaper:
         self.lower, self.upper = limits.lower, limits.upper
         self.vmax, self.amax, self.jmax = limits.velocity, limits.acceleration, limits.jerk
         self._brake = 2.0 * POSITION_BRAKE_FRACTION * limits.acceleration
+        self._velocity_bounds = limits.velocity_bounds
 
     def position_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) velocity bounds that brake to a stop `POSITION_LIMIT_MARGIN` inside the
@@ -298,7 +302,14 @@ class CommandShaper:
         room = np.maximum(np.array((self.upper - POSITION_LIMIT_MARGIN - q,
                                     q - self.lower - POSITION_LIMIT_MARGIN)), 0.0)
         up, down = np.minimum(np.sqrt(self._brake * room), self.vmax)
-        return -down, up
+        # The one velocity limit model (core.limits): on the FR3 libfranka's bound falls
+        # toward each position limit (-c + sqrt(k d)), below the brake curve above on
+        # joints 1-4 and 6; on the Panda it is the constant vmax (no change there). Read
+        # BOUND_LOOKAHEAD_RAD closer to each limit: the jerk-limited command lags a falling
+        # target by up to ~1e-3 rad/s, which the earlier bound covers.
+        low = self._velocity_bounds(q - BOUND_LOOKAHEAD_RAD)[0]
+        high = np.minimum(up, self._velocity_bounds(q + BOUND_LOOKAHEAD_RAD)[1])
+        return np.minimum(np.maximum(-down, low), high), high
 
     def shape(self, target: np.ndarray, u: np.ndarray, a: np.ndarray,
               dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -288,13 +288,20 @@ class GraphPlanner:
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
+    def stop_trajectory(self, q: np.ndarray, qd: np.ndarray | None):
+        """How the arm at ``q`` moving at ``qd`` is stopped: `trajectory.stop_trajectory`
+        at the full acceleration and jerk limits after BRAKE_LATENCY_S of coasting (a
+        one-point hold when it is at rest). Every stop the planner sends is one of these,
+        never an empty trajectory, which JTC rejects."""
+        from damon_ros.planning.trajectory import stop_trajectory
+
+        return stop_trajectory(q, qd, self.limits, coast_s=BRAKE_LATENCY_S,
+                               dt=self.config.trajectory_dt)
+
     def braking_point(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """Where a moving arm comes to rest when braked now at the full acceleration and jerk
-        limits (per joint, ramp-up of the deceleration included, plus BRAKE_LATENCY_S of
-        coasting), inside the position limits."""
-        v, a, j = np.abs(qd), self.limits.acceleration, self.limits.jerk
-        distance = v * v / (2.0 * a) + v * a / (2.0 * j) + v * BRAKE_LATENCY_S
-        return self.inside_limits(q + np.sign(qd) * distance)
+        """Where a moving arm comes to rest when braked now: the end of `stop_trajectory`
+        (on the straight line along ``qd``), inside the position limits."""
+        return self.inside_limits(self.stop_trajectory(q, qd).positions[-1])
 
     def inside_limits(self, q: np.ndarray) -> np.ndarray:
         """``q`` clipped to the joint limits less IK's margin: a waypoint on a limit is a
@@ -312,15 +319,23 @@ class GraphPlanner:
         the soak)."""
         if qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S:
             return self._route(q_start, q_goal, scene)
-        q_stop = self.braking_point(q_start, np.asarray(qd_start, float))
+        from damon_ros.planning.trajectory import concatenate
+
+        brake = self.stop_trajectory(q_start, np.asarray(qd_start, float))
+        q_stop = brake.positions[-1]
+        if np.max(np.abs(self.inside_limits(q_stop) - q_stop)) > 0.0:
+            return PlanResult(False, "braking from the current speed ends too close to a "
+                              "joint limit; holding position", goal_q=q_goal)
         query = _Query(self, q_start, q_stop, scene)
         if not query.segment_certified(q_start, q_stop, first=True):
             return PlanResult(False, "braking from the current speed is not certified free; "
                               "holding position", goal_q=q_goal)
         result = self._route(q_stop, q_goal, scene)
         if result.success:
+            # the trajectory starts from the measured position *and velocity*: the brake
+            # along the line (certified above), then the route from where it ends at rest
             result.path = np.vstack([q_start[None], result.path])
-            result.trajectory = self._time_parameterize(result.path)
+            result.trajectory = concatenate(brake, self._time_parameterize(result.path[1:]))
         return result
 
     def _check_start(self, q: np.ndarray) -> str:

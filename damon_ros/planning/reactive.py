@@ -72,6 +72,8 @@ class RuntimeConfig:
     escape_clearance_m: float = 0.05  # a holding arm moves away when an obstacle is closer
     stall_time_s: float = 1.5  # an arm that stopped short of the goal this long is re-planned
     perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
+    goal_wait_s: float = 5.0  # a goal waiting for obstacle data is dropped after this long
+    obstacle_source: str = "the obstacle topic"  # named in the waiting goal's message
 
 
 @dataclass
@@ -101,6 +103,7 @@ class ReactivePlanner:
         self.last_retry = -math.inf
         self.last_probability = 0.0
         self.pending_goal = None  # a goal given before obstacle data arrived
+        self._pending_since: float | None = None  # first update that saw it waiting
         self._still_q: np.ndarray | None = None  # stall detection
         self._still_since = 0.0
         self.stats = RuntimeStats()
@@ -118,10 +121,15 @@ class ReactivePlanner:
         (`GraphPlanner.braking_point`)."""
         timeout = self.config.perception_timeout_s
         if timeout > 0 and perception_age_s > timeout:
-            self.pending_goal = goal
+            self.pending_goal, self._pending_since = goal, None
             self.planner.goal_q = None
-            return self._hold(f"goal waits for obstacle data (none for "
-                              f"{perception_age_s:.1f} s, limit {timeout:.2f} s)")
+            age = (f"none for {perception_age_s:.1f} s" if math.isfinite(perception_age_s)
+                   else "none received yet")
+            return self._hold(
+                f"goal waits for obstacle data on {self.config.obstacle_source} ({age}; "
+                f"parameter perception_timeout_s = {timeout:g} s): it is planned when fresh "
+                f"data arrives, or dropped after {self.config.goal_wait_s:g} s "
+                "(goal_wait_timeout_s)")
         self.pending_goal = None
         t0 = time.perf_counter()
         result = self.planner.plan(q_now, goal, self.scene(obstacles), qd_start=qd_now)
@@ -157,6 +165,16 @@ class ReactivePlanner:
         if self.risk is not None and shapes.now:
             self.last_probability = float(self.risk(q_now, shapes.now))
         if self.state == "holding":
+            if self.pending_goal is not None:
+                if self._pending_since is None:
+                    self._pending_since = t
+                elif t - self._pending_since > self.config.goal_wait_s:
+                    self.stop("")
+                    return Event("refused", f"goal dropped: it waited "
+                                 f"{t - self._pending_since:.1f} s for obstacle data on "
+                                 f"{self.config.obstacle_source}, longer than "
+                                 f"goal_wait_timeout_s = {self.config.goal_wait_s:g} s; "
+                                 "send it again once obstacles are published")
             if timeout > 0 and perception_age_s > timeout:
                 return None
             if self.pending_goal is not None:

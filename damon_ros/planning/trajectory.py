@@ -26,7 +26,7 @@ import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig
+from ruckig import ControlInterface, InputParameter, Result, Ruckig
 from ruckig import Trajectory as _RuckigTrajectory
 
 from damon_ros.core.limits import JointLimits
@@ -283,8 +283,10 @@ class _Segment:
         return self.start + np.outer(s, u), np.outer(sd, u), np.outer(sdd, u)
 
 
-def _line_profile(a: np.ndarray, b: np.ndarray, vmax, amax, jmax, otg: Ruckig) -> _Segment:
-    """The time-optimal jerk-limited rest-to-rest move from ``a`` to ``b`` along the line."""
+def _line_profile(a: np.ndarray, b: np.ndarray, vmax, amax, jmax, otg: Ruckig,
+                  slow: float = 1.0) -> _Segment:
+    """The time-optimal jerk-limited rest-to-rest move from ``a`` to ``b`` along the line;
+    ``slow`` < 1 scales its velocity by ``slow`` and its acceleration by ``slow**2``."""
     delta = b - a
     length = float(np.max(np.abs(delta)))
     u = delta / length
@@ -293,8 +295,8 @@ def _line_profile(a: np.ndarray, b: np.ndarray, vmax, amax, jmax, otg: Ruckig) -
     inp = InputParameter(1)
     inp.current_position = [0.0]
     inp.target_position = [length]
-    inp.max_velocity = [float(np.min(vmax[moving] / scale))]
-    inp.max_acceleration = [float(np.min(amax[moving] / scale))]
+    inp.max_velocity = [slow * float(np.min(vmax[moving] / scale))]
+    inp.max_acceleration = [slow * slow * float(np.min(amax[moving] / scale))]
     inp.max_jerk = [float(np.min(jmax[moving] / scale))]
     profile = _RuckigTrajectory(1)
     result = otg.calculate(inp, profile)
@@ -334,10 +336,50 @@ def time_parameterize(path, limits: JointLimits, velocity_scale: float = 1.0,
 def _segments(pts: np.ndarray, lim: JointLimits) -> list[_Segment]:
     otg = Ruckig(1)
     return [
-        _line_profile(a, b, lim.velocity, lim.acceleration, lim.jerk, otg)
+        _within_velocity_bounds(a, b, lim, otg)
         for a, b in zip(pts[:-1], pts[1:], strict=True)
         if np.max(np.abs(b - a)) > _SAME_WAYPOINT
     ]
+
+
+RETIME_CHECK_S = 0.002
+"""Spacing (s) of the states at which a segment is checked against position-dependent
+velocity bounds: 2 ms of motion at 2.6 rad/s is 5 mrad, where the bound changes little."""
+
+
+def _within_velocity_bounds(a: np.ndarray, b: np.ndarray, lim: JointLimits,
+                            otg: Ruckig) -> _Segment:
+    """The line move from ``a`` to ``b``, re-timed until no state of it is faster than
+    `JointLimits.velocity_bounds` (the FR3's bounds fall toward each position limit, so a
+    move planned with the constant maxima would command up to 0.9 rad/s above them there).
+
+    Each round slows the whole segment by the worst ratio bound / velocity found (a little
+    more, for the states between checks); a rest-to-rest move approaches its end at
+    ~sqrt(2 a d), so scaling acceleration by the square of the velocity factor slows the
+    states near a limit as much as the cruise. Constant bounds need no check: ruckig keeps
+    to them by construction.
+    """
+    seg = _line_profile(a, b, lim.velocity, lim.acceleration, lim.jerk, otg)
+    if lim.curve is None:
+        return seg
+    slow = 1.0
+    for _ in range(40):
+        t = np.linspace(0.0, seg.duration, max(8, int(seg.duration / RETIME_CHECK_S) + 2))
+        q, qd, _ = seg.at(t)
+        lower, upper = lim.velocity_bounds(q)
+        bound = np.where(qd > 0.0, upper, -lower)  # room in the direction of motion
+        speed = np.abs(qd)
+        fast = speed > np.maximum(bound, 0.0)  # at rest in libfranka's band: not ours
+        if not fast.any():
+            return seg
+        ratio = np.divide(np.maximum(bound, 0.0), speed, out=np.ones_like(speed), where=fast)
+        worst = float(np.min(ratio))
+        if worst <= 0.0:  # moving into the band by a limit, where only leaving it is allowed
+            break
+        slow *= max(0.98 * worst, 0.5)
+        seg = _line_profile(a, b, lim.velocity, lim.acceleration, lim.jerk, otg, slow)
+    raise ValueError(f"cannot time the segment {a.tolist()} -> {b.tolist()} within the "
+                     "position-dependent velocity bounds (a waypoint too close to a limit)")
 
 
 def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> Trajectory:
@@ -356,3 +398,71 @@ def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> T
         q[rows], qd[rows], qdd[rows] = seg.at(times[rows] - starts[i])
     q[-1], qd[-1], qdd[-1] = goal, 0.0, 0.0
     return Trajectory(times, q, qd, qdd)
+
+
+# ----------------------------------------------------------------------------- stops
+
+HOLD_S = 0.1
+"""s: time_from_start of a one-point hold. JTC needs it > 0 (it interpolates from its
+current state to the point over that time); 0.1 s stops an arm creeping at 0.01 rad/s with
+0.1 rad/s^2."""
+AT_REST_RAD_S = 0.01
+"""rad/s: below this on every joint an arm is stopped by a one-point hold, not a brake."""
+
+
+def stop_trajectory(q, qd, limits: JointLimits, coast_s: float = 0.0,
+                    dt: float = 0.01) -> Trajectory:
+    """The motion that stops an arm at ``q`` moving at ``qd``, as a trajectory every joint
+    trajectory controller executes (Jazzy JTC rejects an empty one and keeps going).
+
+    At rest (or ``qd`` None, unknown): a hold at ``q`` reached after `HOLD_S`. Moving: it
+    coasts at ``qd`` for ``coast_s`` (the time until the trajectory reaches the controller:
+    the arm is there by then), then brakes to rest at ``limits``' acceleration and jerk,
+    phase-synchronised — every joint's velocity is ``qd`` times one jerk-limited profile
+    falling from 1 to 0 — so the arm stays on the straight line along ``qd`` that the
+    planner certifies (`GraphPlanner.braking_point` is this trajectory's end). Velocities
+    start clipped to the limits (a measured overshoot must not make a controller refuse the
+    stop); the last point has zero velocity and acceleration, as JTC requires.
+    """
+    q = np.asarray(q, dtype=float)
+    if qd is None or not np.all(np.isfinite(qd)) or np.max(np.abs(qd)) < AT_REST_RAD_S:
+        zero = np.zeros((2, q.size))
+        return Trajectory(np.array([0.0, HOLD_S]), np.vstack((q, q)), zero, zero.copy())
+    qd = np.clip(np.asarray(qd, dtype=float), -limits.velocity, limits.velocity)
+    moving = np.abs(qd) > 0.0
+    speed = np.abs(qd[moving])
+    inp = InputParameter(1)
+    inp.control_interface = ControlInterface.Velocity
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [1.0], [0.0]
+    inp.target_velocity, inp.target_acceleration = [0.0], [0.0]
+    inp.max_velocity = [1.0]
+    inp.max_acceleration = [float(np.min(limits.acceleration[moving] / speed))]
+    inp.max_jerk = [float(np.min(limits.jerk[moving] / speed))]
+    brake = _RuckigTrajectory(1)
+    if Ruckig(1).calculate(inp, brake) != Result.Working:
+        raise ValueError("ruckig could not compute a braking profile")
+    coast_s = max(float(coast_s), 0.0)
+    total = coast_s + float(brake.duration)
+    times = _with_knots(time_grid(total, dt), np.array([coast_s]) if coast_s else
+                        np.zeros(0), dt)
+    s, sd, sdd = np.empty(times.size), np.empty(times.size), np.empty(times.size)
+    for k, t in enumerate(times):
+        if t <= coast_s:
+            s[k], sd[k], sdd[k] = t, 1.0, 0.0
+        else:
+            p, v, a = brake.at_time(t - coast_s)[:3]
+            s[k], sd[k], sdd[k] = coast_s + p[0], v[0], a[0]
+    sd[-1] = sdd[-1] = 0.0
+    positions = np.clip(q + np.outer(s, qd), limits.lower, limits.upper)
+    return Trajectory(times, positions, np.outer(sd, qd), np.outer(sdd, qd))
+
+
+def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
+    """``second`` after ``first`` (which must end where ``second`` starts, both at rest)."""
+    if np.max(np.abs(first.positions[-1] - second.positions[0])) > 1e-9:
+        raise ValueError("trajectories to concatenate must meet")
+    return Trajectory(np.concatenate((first.times, first.duration + second.times[1:])),
+                      *(np.vstack((a, b[1:])) for a, b in (
+                          (first.positions, second.positions),
+                          (first.velocities, second.velocities),
+                          (first.accelerations, second.accelerations))))

@@ -17,7 +17,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 
-from damon_ros.ros.problems import ProblemLog
+from damon_ros.ros.problems import Problem, ProblemError, ProblemLog
 from damon_ros.ros.stamps import stamp_seconds
 
 QUATERNION_TOLERANCE = 1e-3
@@ -29,11 +29,12 @@ CLOCK_RESET_S = 1.0
 bag loop), not a late message: the reader starts over from the new stamp."""
 
 
-class InputError(ValueError):
-    """A message that must not be acted on; the text says why, in one line."""
+class InputError(ProblemError):
+    """A message that must not be acted on; the text says why, in one line, and ``kind``
+    names the check (`ProblemLog` throttles per kind)."""
 
 
-def goal_problem(msg: PoseStamped, base_frame: str) -> str:
+def goal_problem(msg: PoseStamped, base_frame: str) -> Problem | str:
     """'' for a usable goal pose, else why not. An empty ``frame_id`` means the base frame.
 
     Reachability and collisions are the planner's to judge; this is only what makes a pose
@@ -42,14 +43,16 @@ def goal_problem(msg: PoseStamped, base_frame: str) -> str:
     """
     frame = msg.header.frame_id
     if frame not in ("", base_frame):
-        return f"frame_id '{frame}' is not the base frame '{base_frame}'"
+        return Problem(f"frame_id '{frame}' is not the base frame '{base_frame}'",
+                       "goal.frame_other")
     p, o = msg.pose.position, msg.pose.orientation
     values = (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
     if not all(math.isfinite(v) for v in values):
-        return "pose holds NaN or inf"
+        return Problem("pose holds NaN or inf", "goal.not_finite")
     norm = math.hypot(o.x, o.y, o.z, o.w)  # no overflow for huge components
     if abs(norm - 1.0) > QUATERNION_TOLERANCE:
-        return f"orientation is not a unit quaternion (norm {norm:.4f})"
+        return Problem(f"orientation is not a unit quaternion (norm {norm:.4f})",
+                       "goal.orientation_not_unit")
     return ""
 
 
@@ -77,13 +80,15 @@ class JointStateReader:
         """The positions in ``names`` order; raises `InputError` when the message is refused."""
         index = self._lookup(tuple(msg.name))
         if index is None:
-            raise InputError(f"joint state lacks {self._missing} (has {list(msg.name)})")
+            raise InputError(f"joint state lacks {self._missing} (has {list(msg.name)})",
+                             "joint_state.joints_missing")
         if len(msg.position) != len(msg.name):
             raise InputError(f"joint state has {len(msg.name)} names but "
-                             f"{len(msg.position)} positions")
+                             f"{len(msg.position)} positions", "joint_state.lengths")
         q = np.asarray(msg.position, dtype=float)[index]
         if not np.all(np.isfinite(q)):
-            raise InputError("joint state holds NaN or inf positions")
+            raise InputError("joint state holds NaN or inf positions",
+                             "joint_state.not_finite")
         self._check_stamp(stamp_seconds(msg.header.stamp))
         return q
 
@@ -109,7 +114,7 @@ class JointStateReader:
         back = self.last_stamp - stamp
         if 0.0 < back <= CLOCK_RESET_S:
             raise InputError(f"joint state stamp goes backwards ({1e3 * back:.1f} ms older "
-                             "than the last one)")
+                             "than the last one)", "joint_state.stamp_backwards")
         if back > CLOCK_RESET_S:
             self.clock_resets += 1
         self.last_stamp = stamp
@@ -137,7 +142,7 @@ def read_joint_state(reader: JointStateReader, msg, problems: ProblemLog,
     try:
         q = reader.read(msg)
     except InputError as exc:
-        problems.report(f"ignored joint state: {exc}")
+        problems.report(f"ignored joint state: {exc}", exc.kind)
         return None
     if reader.clock_resets != resets:
         log("joint-state stamps jumped back (clock reset): accepted")

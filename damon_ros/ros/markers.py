@@ -48,6 +48,7 @@ from visualization_msgs.msg import Marker
 from damon_ros.core.scenario import COLOR_RGB
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.velocity import VelocityWindow
+from damon_ros.ros.problems import ProblemError, problem_of
 from damon_ros.ros.stamps import stamp_seconds, to_duration, to_stamp
 
 MAX_SIZE_M = 3.0
@@ -83,13 +84,15 @@ def class_rgba(color: str, alpha: float = 0.8) -> tuple[float, float, float, flo
 
 def _check_header(ns: str, id: int, frame_id: str) -> None:
     if not isinstance(ns, str):
-        raise ValueError(f"marker ns must be a string, got {type(ns).__name__}")
+        raise ProblemError(f"marker ns must be a string, got {type(ns).__name__}",
+                           "marker.ns_type")
     if isinstance(id, bool) or not isinstance(id, (int, np.integer)) or not (
         -INT32_MAX - 1 <= id <= INT32_MAX
     ):
-        raise ValueError(f"marker id {id!r} must be an int32")
+        raise ProblemError(f"marker id {id!r} must be an int32", "marker.id_range")
     if not isinstance(frame_id, str) or not frame_id:
-        raise ValueError(f"marker frame_id {frame_id!r} must be a non-empty string")
+        raise ProblemError(f"marker frame_id {frame_id!r} must be a non-empty string",
+                           "marker.frame_empty")
 
 
 def _scale(shape: Shape) -> tuple[float, float, float]:
@@ -180,13 +183,14 @@ def _pose(marker: Marker) -> tuple[np.ndarray, np.ndarray]:
     p, o = marker.pose.position, marker.pose.orientation
     position = np.array([p.x, p.y, p.z], dtype=float)
     if not np.all(np.isfinite(position)):
-        raise ValueError(f"{_label(marker)}: position {position.tolist()} is not finite")
+        raise ProblemError(f"{_label(marker)}: position {position.tolist()} is not finite",
+                           "marker.position_not_finite")
     q = np.array([o.x, o.y, o.z, o.w], dtype=float)
     norm = float(np.linalg.norm(q))
     if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
-        raise ValueError(
+        raise ProblemError(
             f"{_label(marker)}: orientation {q.tolist()} is not a unit quaternion [x, y, z, w] "
-            f"(norm {norm:.6g})"
+            f"(norm {norm:.6g})", "marker.orientation_not_unit"
         )
     return position, q / norm
 
@@ -194,23 +198,30 @@ def _pose(marker: Marker) -> tuple[np.ndarray, np.ndarray]:
 def _sizes(marker: Marker, values: Sequence[float], what: str) -> np.ndarray:
     s = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(s)):
-        raise ValueError(f"{_label(marker)}: {what} {s.tolist()} is not finite")
-    if np.any(s <= 0.0) or np.any(s > MAX_SIZE_M):
-        raise ValueError(
-            f"{_label(marker)}: {what} {s.tolist()} must be > 0 and <= {MAX_SIZE_M} m"
-        )
+        raise ProblemError(f"{_label(marker)}: {what} {s.tolist()} is not finite",
+                           "marker.size_not_finite")
+    if np.any(s <= 0.0):
+        raise ProblemError(f"{_label(marker)}: {what} {s.tolist()} must be > 0 m",
+                           "marker.size_not_positive")
+    if np.any(s > MAX_SIZE_M):
+        raise ProblemError(
+            f"{_label(marker)}: {what} {s.tolist()} must be <= {MAX_SIZE_M} m (a unit error, "
+            "mm for m?)", "marker.size_too_large")
     return s
 
 
 def _marker_points(marker: Marker) -> np.ndarray:
     if not marker.points:
-        raise ValueError(f"{_label(marker)}: a {TYPE_NAMES[marker.type]} marker needs points")
+        raise ProblemError(f"{_label(marker)}: a {TYPE_NAMES[marker.type]} marker needs "
+                           "points", "marker.points_missing")
     pts = np.array([[p.x, p.y, p.z] for p in marker.points], dtype=float)
     if not np.all(np.isfinite(pts)):
-        raise ValueError(f"{_label(marker)}: points are not all finite")
+        raise ProblemError(f"{_label(marker)}: points are not all finite",
+                           "marker.points_not_finite")
     extent = _points_extent(pts)
     if extent > MAX_SIZE_M:
-        raise ValueError(f"{_label(marker)}: points span {extent:.3f} m, more than {MAX_SIZE_M} m")
+        raise ProblemError(f"{_label(marker)}: points span {extent:.3f} m, more than "
+                           f"{MAX_SIZE_M} m", "marker.points_too_large")
     return pts
 
 
@@ -226,13 +237,14 @@ def marker_to_shape(marker: Marker, frame_id: str | None = None) -> Shape:
     kind = marker.type
     if kind not in SHAPE_TYPES:
         name = TYPE_NAMES.get(kind, "unknown")
-        raise ValueError(
+        raise ProblemError(
             f"{_label(marker)}: type {kind} ({name}) is not an obstacle shape; expected "
-            "SPHERE, CUBE, CYLINDER, POINTS or SPHERE_LIST"
+            "SPHERE, CUBE, CYLINDER, POINTS or SPHERE_LIST", "marker.type_unknown"
         )
     if frame_id is not None and marker.header.frame_id != frame_id:
-        raise ValueError(
-            f"{_label(marker)}: frame {marker.header.frame_id!r} is not {frame_id!r}"
+        raise ProblemError(
+            f"{_label(marker)}: frame {marker.header.frame_id!r} is not {frame_id!r}",
+            "marker.frame_other"
         )
     position, q = _pose(marker)
     scale = (marker.scale.x, marker.scale.y, marker.scale.z)
@@ -324,7 +336,7 @@ class ObstacleTable:
             try:
                 self._apply_one(marker, float(now))
             except ValueError as exc:
-                errors.append(str(exc))
+                errors.append(problem_of(exc, "marker.invalid"))
         if len(errors) < len(markers) or not markers:  # an empty array says "nothing there"
             self.last_update = float(now)
         return errors
@@ -339,7 +351,8 @@ class ObstacleTable:
         elif marker.action == Marker.ADD:  # MODIFY has the same value (0) in ROS 2
             self._add(key, marker, now)
         else:
-            raise ValueError(f"{_label(marker)}: unknown action {marker.action}")
+            raise ProblemError(f"{_label(marker)}: unknown action {marker.action}",
+                               "marker.action_unknown")
 
     def _add(self, key: tuple[str, int], marker: Marker, now: float) -> None:
         shape = marker_to_shape(marker, self.frame_id)

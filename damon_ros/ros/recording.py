@@ -108,9 +108,10 @@ class BagRecorder:
             cls = getattr(importlib.import_module(module), name)
             schema = self._writer.register_schema(name=_type_name(cls), encoding="ros2msg",
                                                   data=message_definition(cls).encode())
-            self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding="cdr", schema_id=schema)
-            qos = qos_profile_sensor_data if topic.startswith("/camera") or topic in (
+            self._channels[topic] = self._writer.register_channel(  # the resolved name
+                topic=node.resolve_topic_name(topic), message_encoding="cdr",
+                schema_id=schema)
+            qos = qos_profile_sensor_data if topic.lstrip("/").startswith("camera/") or topic in (
                 topics.OBSTACLES,) else 50  # match the publishers' QoS
             node.create_subscription(cls, topic, self._callback(topic), qos)
 

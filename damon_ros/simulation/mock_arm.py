@@ -76,7 +76,7 @@ class ArmSim:
         else:
             self._cmd, self._cmd_time = cmd.copy(), float(t)
             if self.monitor is not None:
-                self.monitor.command(cmd, t, sent)
+                self.monitor.command(cmd, t, sent, q=self._q)
             return None
         self.last_reason = reason
         return reason
@@ -179,15 +179,20 @@ class LimitMonitor:
         """Commands and entries beyond a limit (late commands are not violations)."""
         return sum(self.counts[k] for k in LIMIT_KINDS)
 
-    def command(self, u, t: float, sent: float | None = None) -> None:
+    def command(self, u, t: float, sent: float | None = None,
+                q: np.ndarray | None = None) -> None:
         """Check one accepted velocity command that arrived at time ``t`` (s), published
-        at ``sent`` (s, the sender's clock; None: unknown)."""
+        at ``sent`` (s, the sender's clock; None: unknown), given to the arm at joint
+        positions ``q`` (None: unknown, only the constant maxima are checked). With ``q``
+        the velocity is checked against `JointLimits.velocity_bounds` at ``q``: the FR3's
+        position-dependent bounds, the Panda's constants."""
         u = np.asarray(u, dtype=float)
         if u.shape != self.limits.velocity.shape or not np.all(np.isfinite(u)) or \
                 not math.isfinite(t):
             raise ValueError("the limit monitor takes finite, accepted commands only")
         self.commands += 1
-        self._check("velocity", u, self.limits.velocity, t)
+        if not self._check("velocity", u, self.limits.velocity, t) and q is not None:
+            self._check_bounds(u, np.asarray(q, dtype=float), t)
         if self._t is not None:
             spacing = None if sent is None or self._sent is None else sent - self._sent
             gap = max(t - self._t, -math.inf if spacing is None else spacing)
@@ -214,6 +219,18 @@ class LimitMonitor:
                 self._within((a_sent - self._a_sent) / spacing, lim.jerk):
             self.jitter["jerk"] += 1
         self._a, self._a_sent = a, a_sent
+
+    def _check_bounds(self, u: np.ndarray, q: np.ndarray, t: float) -> None:
+        """Count a command beyond the position-dependent velocity bound at ``q``."""
+        excess = self.limits.velocity_excess(q, u)
+        j = int(np.argmax(excess))
+        if excess[j] <= self.tolerance * self.limits.velocity[j]:
+            return
+        self.counts["velocity"] += 1
+        lower, upper = self.limits.velocity_bounds(q)
+        self._first("velocity", f"command {self.commands} asks joint {j + 1} for velocity "
+                    f"{u[j]:.6g} at {q[j]:.4f} rad, outside its position-dependent bounds "
+                    f"[{lower[j]:.6g}, {upper[j]:.6g}] at t = {t:.3f} s")
 
     def _within(self, value: np.ndarray, limit: np.ndarray) -> bool:
         return bool(np.all(np.abs(value) <= limit * (1.0 + self.tolerance)))

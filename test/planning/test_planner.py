@@ -185,13 +185,22 @@ def test_a_moving_arm_is_planned_from_where_it_stops(planner, robots):
     q0, qd = scenario.start, np.array([1.5, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0])
     q_stop = planner.braking_point(q0, qd)
     lim = planner.limits
-    expected = qd**2 / (2 * lim.acceleration) + np.abs(qd) * lim.acceleration / (2 * lim.jerk)
-    np.testing.assert_allclose(np.abs(q_stop - q0), expected + np.abs(qd) * 0.03)
+    # phase-synchronised: the stop lies on the line along qd, and the joint that needs the
+    # longest brake (per-joint, deceleration ramp included) brakes exactly that far
+    per_joint = qd**2 / (2 * lim.acceleration) + np.abs(qd) * lim.acceleration / (2 * lim.jerk)
+    along = (q_stop - q0)[0] / qd[0]
+    np.testing.assert_allclose(q_stop - q0, along * qd, atol=1e-9)
+    limiting = int(np.argmax(per_joint / np.abs(np.where(qd == 0, np.inf, qd))))
+    assert abs(q_stop - q0)[limiting] == pytest.approx(per_joint[limiting]
+                                                       + abs(qd[limiting]) * 0.03, rel=1e-6)
+    assert np.all(np.abs(q_stop - q0) >= per_joint + np.abs(qd) * 0.03 - 1e-9)
     goal = scenario.goal.joints
     moving = planner.plan(q0, goal, scenario.obstacles_at(0.0), qd_start=qd)
     assert moving.success, moving.reason
     np.testing.assert_allclose(moving.path[:2], [q0, q_stop])  # brake, then the route
     assert moving.trajectory.positions[0] == pytest.approx(q0)
+    # it starts from the measured velocity too (no step for the controller to absorb)
+    np.testing.assert_allclose(moving.trajectory.velocities[0], qd)
     # an obstacle on the braking segment: no route may start there
     fast, _ = robots
     ball = Shape("sphere", (0.04,), fast.tcp_pose(0.5 * (q0 + q_stop))[0])
