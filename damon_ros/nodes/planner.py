@@ -38,10 +38,19 @@ from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
-from damon_ros.ros.stamps import clock_seconds, to_duration, to_stamp
+from damon_ros.ros.stamps import (
+    clock_seconds,
+    is_zero,
+    stamp_seconds,
+    to_duration,
+    to_stamp,
+)
 from damon_ros.ros.topic_reader import TopicReader
 
 NAME = "planner"
+
+STOP_STAMP_MARGIN_S = 0.05
+"""s: a brake is stamped with its state's time only while this much of it is still ahead."""
 
 PARAMETERS = (
     Param("model_dir", "", "model directory ('' = the shipped models/default)"),
@@ -129,6 +138,7 @@ class PlannerNode(Node):
         self.q: np.ndarray | None = None
         self.qd: np.ndarray | None = None
         self.q_stamp = -math.inf
+        self.q_measured_at = -math.inf  # the state's header stamp (reception if unset)
         self.last_event = "idle"
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
@@ -161,8 +171,10 @@ class PlannerNode(Node):
         if q is None:
             return
         qd = self.joint_reader.velocities(msg)
+        now = clock_seconds(self)
+        measured = now if is_zero(msg.header.stamp) else min(stamp_seconds(msg.header.stamp), now)
         with self.lock:
-            self.q, self.qd, self.q_stamp = q, qd, clock_seconds(self)
+            self.q, self.qd, self.q_stamp, self.q_measured_at = q, qd, now, measured
 
     def _current_state(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(positions, velocities or None) of a fresh joint state; (None, None) if stale."""
@@ -266,8 +278,9 @@ class PlannerNode(Node):
         return msg
 
     def _trajectory_msg(self, traj, first: int = 0) -> JointTrajectory:
-        """``traj``'s samples from index ``first`` on; header.stamp zero: start on arrival
-        (a stamp in the past would make JTC refuse a late stop whose end has passed)."""
+        """``traj``'s samples from index ``first`` on; header.stamp zero (start on arrival)
+        unless the caller stamps it (`_publish_stop`; JTC refuses a stamped trajectory
+        whose end has passed)."""
         msg = self._empty_trajectory()
         for t, q, qd, qdd in zip(traj.times[first:], traj.positions[first:],
                                  traj.velocities[first:], traj.accelerations[first:],
@@ -284,14 +297,26 @@ class PlannerNode(Node):
         measured position and velocity, `GraphPlanner.stop_trajectory` — a jerk-limited
         brake, or a one-point hold at rest. Its first sample (time 0, the measured state)
         is left out: JTC and our controller start from their current state and interpolate
-        to the first point, whose time_from_start is then > 0."""
+        to the first point, whose time_from_start is then > 0.
+
+        A brake is stamped with the time its state was measured: the arm has moved on since
+        (the state's age plus transport, 0.1-0.5 s on a saturated machine), and a zero stamp
+        would ask it to be back at the brake's first point 10 ms after arrival — a jump that
+        our JTC-semantics controller refused as infeasible (the arm went on into the threat)
+        and JTC would follow as a step. Stamped, both controllers take the brake from where
+        the coasting arm is now. A brake whose end has already passed (a very old state) and
+        a hold at rest go out unstamped: they start on arrival."""
         with self.lock:
-            q, qd = self.q, self.qd
+            q, qd, measured_at = self.q, self.qd, self.q_measured_at
         if q is None:
             self.problems.report("no stop sent: no joint state received yet, so the arm has "
                                  "not been moved by this planner", kind="stop.no_state")
             return None
-        msg = self._trajectory_msg(self.runtime.planner.stop_trajectory(q, qd), first=1)
+        stop = self.runtime.planner.stop_trajectory(q, qd)
+        msg = self._trajectory_msg(stop, first=1)
+        ahead = stop.duration - (clock_seconds(self) - measured_at)
+        if stop.times.size > 2 and ahead > STOP_STAMP_MARGIN_S:
+            msg.header.stamp = to_stamp(measured_at)
         self.pub_traj.publish(msg)
         return msg
 

@@ -56,6 +56,7 @@ class RunRecord:
     limits_respected: bool = True
     error: str | None = None
     holds: int = 0
+    trajectories_refused: int = 0  # by the follower (JTC semantics), the last one kept running
     planner_settings: dict = field(default_factory=dict)
 
     def as_json(self) -> dict:
@@ -130,8 +131,11 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
             _, event = pending.pop(0)
             if event.kind == "trajectory":
                 tr = event.result.trajectory
-                follower.set_trajectory(tr.times, tr.positions, tr.velocities,
-                                        tr.accelerations, start_time=now)
+                try:
+                    follower.set_trajectory(tr.times, tr.positions, tr.velocities,
+                                            tr.accelerations, start_time=now)
+                except ValueError:  # as the controller node: refused, what runs goes on
+                    record.trajectories_refused += 1
             elif event.kind == "hold":
                 follower.hold(sim.q)
 
