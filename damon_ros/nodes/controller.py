@@ -81,7 +81,6 @@ from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import clock_seconds, is_zero, stamp_seconds
 
 NAME = "controller"
-WARN_EVERY_S = 5.0
 _GAINS = PIDGains()
 _TOLERANCES = Tolerances.unchecked()
 GAIN_FIELDS = ("p", "i", "d", "i_clamp", "ff_velocity_scale")
@@ -91,6 +90,9 @@ BASE_PARAMETERS = (
     Param("joint_prefix", "panda_",
           "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
     Param("limit_profile", "panda", f"limits every command respects: {' | '.join(PROFILES)}"),
+    Param("warn_every_s", 5.0,
+          "a repeated problem of one kind (bad input, refusal) is logged at most this often, "
+          "with a count; 0: every time (s)", 0.0, 3600.0),
     Param("rate_hz", 1000.0, "command rate (Hz)", 1.0, 10000.0),
     Param("state_rate_hz", 100.0, "/damon/controller_state rate (Hz)", 0.1, 10000.0),
     Param("interpolation", "quintic", f"between trajectory points: {' | '.join(METHODS)}"),
@@ -185,7 +187,7 @@ class Controller(Node):
         self._q: np.ndarray | None = None
         self._q_time = 0.0  # monotonic arrival time of self._q
         self._reader = JointStateReader(self.names)
-        self._problems = ProblemLog(self.get_logger().warning, WARN_EVERY_S)
+        self._problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         self._last_heartbeat = time.monotonic()
         self._stale = False
         self._hb_lapsed = False

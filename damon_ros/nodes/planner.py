@@ -57,6 +57,9 @@ PARAMETERS = (
     Param("joint_prefix", "panda_", "joint names are <prefix>joint1..7 (panda_ or fr3_)"),
     Param("limit_profile", "panda", f"joint-limit profile: {' | '.join(PROFILES)}"),
     Param("base_frame", "panda_link0", "frame of goals, obstacles and paths"),
+    Param("warn_every_s", 5.0,
+          "a repeated problem of one kind (bad input, refusal) is logged at most this often, "
+          "with a count; 0: every time (s)", 0.0, 3600.0),
     Param("trajectory_topic", topics.JOINT_TRAJECTORY, "where trajectories go "
           "(/fr3_arm_controller/joint_trajectory for franka_ros2's JTC)"),
     Param("joint_states_topic", topics.JOINT_STATES, "joint states in (franka/joint_states "
@@ -126,10 +129,10 @@ class PlannerNode(Node):
         self.table = ObstacleTable(self.base_frame)
         self.joint_reader = JointStateReader(self.limits.names)
         # one line per kind of bad input at once, repeats of a kind once per 5 s with a count
-        self.problems = ProblemLog(self.get_logger().warning, 5.0)
+        self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         # goal refusals: the same, per kind of refusal (a client retrying at 10 Hz logged
         # 24 identical lines in 2.4 s)
-        self.refusals = ProblemLog(self.get_logger().error, 5.0)
+        self.refusals = ProblemLog(self.get_logger().error, p["warn_every_s"])
         self.joint_states_topic = p["joint_states_topic"]
         self.lock = threading.Lock()  # the latest joint state
         # the runtime and the obstacle table: obstacle arrays arrive on a reader thread,

@@ -45,8 +45,10 @@ NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 PERCEPTION_TIMEOUT_S = 0.5
 PARAMS = {
     "mock_panda": {"rate_hz": 250.0},
-    "controller": {"planner_heartbeat_timeout_s": 1.0},
-    "planner": {"perception_timeout_s": PERCEPTION_TIMEOUT_S,
+    # warn_every_s 0: every bad input gets its line (the cases below repeat kinds, and the
+    # throttle, tested in test/ros/test_problem_kinds.py, would fold them)
+    "controller": {"planner_heartbeat_timeout_s": 1.0, "warn_every_s": 0.0},
+    "planner": {"perception_timeout_s": PERCEPTION_TIMEOUT_S, "warn_every_s": 0.0,
                 "velocity_scale": 0.3, "realtime_priority": 0},
 }
 FAR = Shape("sphere", (0.05,), [-0.6, 0.0, 0.3], name="far")  # never in the way
