@@ -18,6 +18,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped
 from nav_msgs.msg import Path
@@ -131,8 +132,12 @@ class PlannerNode(Node):
         # one line per kind of bad input at once, repeats of a kind once per 5 s with a count
         self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         # goal refusals: the same, per kind of refusal (a client retrying at 10 Hz logged
-        # 24 identical lines in 2.4 s)
-        self.refusals = ProblemLog(self.get_logger().error, p["warn_every_s"])
+        # 24 identical lines in 2.4 s). Through a logger object of their own: rclpy fixes
+        # the severity per call site and logger, and both logs call from ProblemLog.report —
+        # sharing the node's logger, a joint-state warning after a refusal raised ValueError
+        # and stopped the joint-state reader.
+        self.refusals = ProblemLog(rclpy.logging.get_logger(self.get_logger().name).error,
+                                   p["warn_every_s"])
         self.joint_states_topic = p["joint_states_topic"]
         self.lock = threading.Lock()  # the latest joint state
         # the runtime and the obstacle table: obstacle arrays arrive on a reader thread,

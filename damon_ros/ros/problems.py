@@ -51,6 +51,11 @@ class ProblemLog:
     one problem repeating with new numbers in its text is one stream, logged once per
     ``every_s`` with the count of the repeats left out. A message without a kind falls back
     to its text with the numbers blanked.
+
+    ``log`` is one severity of one rclpy logger object: rclpy ties a severity to each call
+    site per logger object, and every ProblemLog logs from the same line here, so two
+    ProblemLogs of different severities need two logger objects (`rclpy.logging.get_logger`
+    with the node logger's name gives a second one).
     """
 
     def __init__(self, log: Callable[[str], None], every_s: float,

@@ -164,7 +164,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
         acc = (qd - qd_prev) / config.control_dt
         record.max_joint_acceleration = max(record.max_joint_acceleration,
                                             float(np.max(np.abs(acc))))
-        if np.any(np.abs(qd) > limits.velocity + 1e-9) or np.any(
+        if np.any(limits.velocity_excess(q, qd) > 1e-9) or np.any(
                 np.abs(acc) > limits.acceleration + 1e-6) or not limits.within(q, 1e-9):
             record.limits_respected = False
         qd_prev = qd

@@ -20,6 +20,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from damon_ros.core.limits import PROFILES
+
 PLANNERS = ("damon", "damon-noreplan", "rrt", "rrtstar", "rrtconnect")
 
 
@@ -64,7 +66,7 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     from damon_ros.core.robot import Robot
     from damon_ros.simulation.closed_loop import SimConfig, run_scenario
 
-    fast, mesh = Robot("fast"), Robot("mesh")
+    fast, mesh = Robot("fast", args.profile), Robot("mesh")
     config = SimConfig(perception=args.perception, perception_latency=args.latency,
                        perception_noise=args.noise, seed=args.seed)
     records = []
@@ -146,7 +148,8 @@ def summary(records: list[dict]) -> str:
         if "planner" in r:
             groups[(r.get("family") or r.get("set") or "?", r["planner"])].append(r)
     header = (f"{'family':<18} {'planner':<15} {'runs':>4} {'success':>8} {'contacts':>8} "
-              f"{'T p50 s':>8} {'path p50':>8} {'plan p50 ms':>11} {'plan p99 ms':>11} "
+              f"{'over lim':>8} {'T p50 s':>8} {'path p50':>8} {'plan p50 ms':>11} "
+              f"{'plan p99 ms':>11} "
               f"{'replan p50 ms':>13} {'replan p99 ms':>13}")
     lines = [header, "-" * len(header)]
     for (family, planner), rs in sorted(groups.items()):
@@ -156,6 +159,7 @@ def summary(records: list[dict]) -> str:
             f"{family:<18} {planner:<15} {len(rs):>4} "
             f"{100 * np.mean([bool(r.get('success')) for r in rs]):>7.1f}% "
             f"{sum(bool(r.get('collided')) for r in rs):>8} "
+            f"{sum(r.get('limits_respected') is False for r in rs):>8} "
             f"{_pct([r.get('total_time_s') for r in rs], 50):>8.2f} "
             f"{_pct([r.get('path_length_rad') for r in rs], 50):>8.2f} "
             f"{_pct(plans, 50):>11.1f} {_pct(plans, 99):>11.1f} "
@@ -181,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--solve-time", type=float, default=1.0, help="OMPL budget per plan (s)")
     parser.add_argument("--per-set", type=int, default=None,
                         help="at most this many MotionBenchMaker problems per set")
+    parser.add_argument("--profile", choices=PROFILES, default="panda",
+                        help="joint-limit profile the planners and the limit check use (fr3: "
+                             "libfranka's position-dependent velocity bound)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from damon_ros.core.limits import PROFILES
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment, observer_environment
 from damon_ros.ros.launch import start_node, stop_node
@@ -120,6 +121,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="seconds the nodes get to start before the scenario clock runs "
                         "(slower ones get up to 90 s; the goals start once they are up)")
     p.add_argument("--model", default=None, help="model directory (default: shipped)")
+    p.add_argument("--profile", choices=PROFILES, default="panda",
+                   help="joint-limit profile of planner, controller and mock_panda's monitor "
+                        "(fr3: libfranka's position-dependent velocity bound)")
     return p
 
 
@@ -229,11 +233,12 @@ def write_soak_scenario(out: Path, duration_s: float) -> tuple[Path, list[SoakGo
 def node_specs(args, scenario: Path, start_time: float) -> dict:
     """name -> (module, parameters, remaps) of the graph, as `damon_ros.tools.demo` starts it."""
     common = {"scenario": str(scenario), "scenario_start_time_s": start_time}
+    profile = {"limit_profile": args.profile}
     specs = {
-        "mock_panda": ("mock_panda", {**common, "contact_check": True, "limit_check": True},
-                       None),
-        "controller": ("controller", {"planner_heartbeat_timeout_s": 1.0}, None),
-        "planner": ("planner", {"model_dir": args.model or ""},
+        "mock_panda": ("mock_panda", {**common, **profile, "contact_check": True,
+                                      "limit_check": True}, None),
+        "controller": ("controller", profile, None),
+        "planner": ("planner", {**profile, "model_dir": args.model or ""},
                     {topics.OBSTACLES: topics.SIM_OBSTACLES} if args.no_camera else None),
         "mock_camera": ("mock_camera", {**common, "fps": args.fps,
                                         "truth_lifetime_frames": args.fps,  # 1 s

@@ -329,7 +329,7 @@ def test_silent_planner_holds_the_arm(arm: Arm):
     assert arm.settle()
     for _ in range(2):  # a logged stale-joint-state stop spoils one attempt (see above)
         stale = arm.stale_count()
-        lines = len(rosutil.log_lines(arm.controller, "no /damon/planner_status"))
+        lines = len(rosutil.log_lines(arm.controller, f"no {topics.PLANNER_STATUS}"))
         goal = arm.q() + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         stopped = _silence_the_planner(arm, goal)
         if arm.stale_count() == stale:
@@ -341,7 +341,7 @@ def test_silent_planner_holds_the_arm(arm: Arm):
     assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 0.1, stopped
     assert arm.q()[0] < goal[0] - 0.05  # it never got there
     np.testing.assert_allclose(arm.controller_state.last.velocity, 0.0)  # holding
-    assert len(rosutil.log_lines(arm.controller, "no /damon/planner_status")) == lines + 1
+    assert len(rosutil.log_lines(arm.controller, f"no {topics.PLANNER_STATUS}")) == lines + 1
 
 
 def _braking_start(commands: rosutil.Recorder, zero: float) -> float:

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import rosutil
 from builtin_interfaces.msg import Duration
+from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -115,7 +116,11 @@ def _start(ros, env, tmp, name: str, controller_params: dict, remaps=None) -> Lo
     assert ros.spin_until(lambda: len(loop.commands) > 10 and len(loop.states) > 10,
                           60.0), loop.logs()
     assert ros.wait_for_subscribers(loop.pub, 1, 10.0), loop.logs()
-    ros.spin_for(0.5)  # the heartbeat has been seen
+    # the heartbeat flows (its process starts in seconds on a busy machine; until the
+    # controller hears it, every trajectory is refused, as it should be)
+    heartbeats = ros.record(DiagnosticArray, topics.PLANNER_STATUS)
+    assert ros.spin_until(lambda: len(heartbeats) >= 5, 60.0), loop.logs()
+    ros.spin_for(0.3)
     return loop
 
 
