@@ -261,11 +261,11 @@ def test_empty_trajectory_is_refused_and_a_hold_trajectory_stops(arm: Arm):
     q0 = arm.q()
     step = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     goal = q0 + 0.8 * step
-    # Under way within 2 s, then slowly on for 18 s: a busy test process reads states late,
-    # and its stop must still land well before the end (in CI a 3 s trajectory had ended
-    # before the stop arrived).
-    arm.trajectories.publish(trajectory([2.0, 20.0], [q0 + 0.1 * step, goal],
-                                        [0.04 * step, np.zeros(7)]))
+    # Under way within 2 s, then slowly on for 58 s (15 mrad/s): a busy test process reads
+    # states late, and its stop must still land well before the end (in CI a 3 s trajectory
+    # had ended before the stop arrived; here the hold came 15 s after the empty one).
+    arm.trajectories.publish(trajectory([2.0, 60.0], [q0 + 0.1 * step, goal],
+                                        [0.015 * step, np.zeros(7)]))
     assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.02, 5.0), arm.logs()
     before = len(rosutil.log_lines(arm.controller, "rejected trajectory of 0 points"))
     arm.trajectories.publish(JointTrajectory(joint_names=NAMES))  # no points: refused

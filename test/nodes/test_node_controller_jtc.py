@@ -365,5 +365,7 @@ def test_partial_joints_when_allowed_hold_the_others(blocked: Loop):
     blocked.ros.spin_for(1.2)
     desired = _desired(blocked)
     others = [j for j in range(7) if j not in named]
-    np.testing.assert_allclose(desired[others], q[others], atol=1e-9)
+    # the others hold where the controller measured them when it accepted (within 0.1 mrad
+    # of the test's last state: the two read different messages), the named moved 20 mrad
+    np.testing.assert_allclose(desired[others], q[others], atol=1e-4)
     np.testing.assert_allclose(desired[named], q[named] + 0.02, atol=1e-6)
