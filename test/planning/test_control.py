@@ -469,3 +469,29 @@ def test_a_plain_move_on_a_lagging_arm_settles_without_overshoot(delay_ticks):
     past = np.array(past)
     assert past.max() < 5e-5, past.max()  # never more than 0.05 mrad beyond the goal
     assert abs(past[-1]) < 1e-4
+
+
+def test_a_stop_that_cannot_be_interpolated_onto_is_joined_not_refused():
+    """A brake planned from a state measured while the arm accelerated: its first point lies
+    mrad from the arm, yet bending the arm's velocity onto it in 5 ms asks ~37 rad/s². It is
+    joined (the note says so) and the commands stay within the limits; a jump of 0.3 rad in
+    50 ms stays refused (test above)."""
+    from damon_ros.planning.trajectory import stop_trajectory
+
+    f = TrajectoryFollower(LIM)
+    u = np.array([0.3, 0.2, 0.1, 0.3, 0.1, 0.2, 0.3])
+    f.update(0.0, HOME)
+    stop = stop_trajectory(HOME, 0.8 * u, LIM, coast_s=0.03)
+    plan = f.prepare(stop.times[1:], stop.positions[1:], stop.velocities[1:],
+                     stop.accelerations[1:], start_time=-0.005, state=(0.0, HOME, u))
+    assert plan.note.startswith("joined at its first point"), plan.note
+    f.start(plan)
+    q, previous = HOME.copy(), f.update(0.0, HOME)
+    for k in range(1, 600):  # the arm moves as commanded; the commands keep the limits
+        q = q + previous * 1e-3
+        command = f.update(k * 1e-3, q)
+        assert np.all(np.abs(command) <= LIM.velocity + 1e-9)
+        assert np.all(np.abs(command - previous) <= LIM.acceleration * 1e-3 * (1 + 1e-6))
+        previous = command
+    assert np.max(np.abs(previous)) < 1e-3  # settling at the brake's end
+    assert np.max(np.abs(q - stop.positions[-1])) < 5e-3
