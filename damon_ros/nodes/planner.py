@@ -33,6 +33,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from damon_ros.core.limits import PROFILES
+from damon_ros.planning.trajectory import held_until
 from damon_ros.ros import topics
 from damon_ros.ros.inputs import JointStateReader, goal_problem, read_joint_state
 from damon_ros.ros.node_loop import use_realtime_priority
@@ -50,8 +51,8 @@ from damon_ros.ros.topic_reader import TopicReader
 
 NAME = "planner"
 
-STOP_STAMP_MARGIN_S = 0.05
-"""s: a brake is stamped with its state's time only while this much of it is still ahead."""
+STOP_HOLD_S = 1.0
+"""s: a stop's end is held at least this long after it is sent (see `_publish_stop`)."""
 
 PARAMETERS = (
     Param("model_dir", "", "model directory ('' = the shipped models/default)"),
@@ -312,8 +313,10 @@ class PlannerNode(Node):
         would ask it to be back at the brake's first point 10 ms after arrival — a jump that
         our JTC-semantics controller refused as infeasible (the arm went on into the threat)
         and JTC would follow as a step. Stamped, both controllers take the brake from where
-        the coasting arm is now. A brake whose end has already passed (a very old state) and
-        a hold at rest go out unstamped: they start on arrival."""
+        the coasting arm is by now. Its end is held until at least `STOP_HOLD_S` after now,
+        so that a brake from an old state has not ended on arrival (JTC refuses a stamped
+        trajectory whose end has passed); the arm then settles at the brake's end. A hold at
+        rest goes out unstamped: it starts on arrival."""
         with self.lock:
             q, qd, measured_at = self.q, self.qd, self.q_measured_at
         if q is None:
@@ -321,9 +324,11 @@ class PlannerNode(Node):
                                  "not been moved by this planner", kind="stop.no_state")
             return None
         stop = self.runtime.planner.stop_trajectory(q, qd)
-        msg = self._trajectory_msg(stop, first=1)
-        ahead = stop.duration - (clock_seconds(self) - measured_at)
-        if stop.times.size > 2 and ahead > STOP_STAMP_MARGIN_S:
+        if stop.times.size <= 2:  # at rest: a hold
+            msg = self._trajectory_msg(stop, first=1)
+        else:
+            age = max(0.0, clock_seconds(self) - measured_at)
+            msg = self._trajectory_msg(held_until(stop, age + STOP_HOLD_S), first=1)
             msg.header.stamp = to_stamp(measured_at)
         self.pub_traj.publish(msg)
         return msg

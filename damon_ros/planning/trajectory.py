@@ -457,6 +457,16 @@ def stop_trajectory(q, qd, limits: JointLimits, coast_s: float = 0.0,
     return Trajectory(times, positions, np.outer(sd, qd), np.outer(sdd, qd))
 
 
+def held_until(traj: Trajectory, end_s: float) -> Trajectory:
+    """``traj`` with its last point repeated at ``end_s`` when it ends before (at rest)."""
+    if end_s <= traj.duration + 1e-9:
+        return traj
+    zero = np.zeros((1, traj.positions.shape[1]))
+    return Trajectory(np.append(traj.times, end_s), np.vstack((traj.positions,
+                                                              traj.positions[-1:])),
+                      np.vstack((traj.velocities, zero)), np.vstack((traj.accelerations, zero)))
+
+
 def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
     """``second`` after ``first`` (which must end where ``second`` starts, both at rest)."""
     if np.max(np.abs(first.positions[-1] - second.positions[0])) > 1e-9:
