@@ -56,6 +56,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -182,6 +183,7 @@ class Controller(Node):
         self._allow_partial = p["allow_partial_joints_goal"]
         self._allow_end_velocity = p["allow_nonzero_velocity_at_trajectory_end"]
         self._js_timeout = p["joint_state_timeout_s"]
+        self._event_loggers: dict[str, object] = {}
         self._hb_timeout = p["planner_heartbeat_timeout_s"]
         self._lock = threading.Lock()  # guards the follower and the latest measurement
         self._q: np.ndarray | None = None
@@ -239,6 +241,15 @@ class Controller(Node):
                     "dead, the arm holds")
         return None
 
+    def _event_logger(self, level: str):
+        """A logger object for the follower's events of ``level``: rclpy ties a severity to
+        a call site per logger object, and every event is logged from one line (with the
+        node's own logger, an error after an info line raised ValueError there and stopped
+        the control loop)."""
+        if level not in self._event_loggers:
+            self._event_loggers[level] = rclpy.logging.get_logger(self.get_logger().name)
+        return self._event_loggers[level]
+
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         log = self.get_logger()
         times, pos, vel, acc = trajectory_arrays(msg)
@@ -289,7 +300,7 @@ class Controller(Node):
             events = self._follower.take_events()
         self._ticks += 1
         for level, line in events:  # aborts on a tolerance, goals reached: said once each
-            getattr(self.get_logger(), level)(line)
+            getattr(self._event_logger(level), level)(line)
         self._cmd_pub.publish(Float64MultiArray(data=u.tolist()))
         if state is not None:
             state.header.stamp = self.get_clock().now().to_msg()
