@@ -526,11 +526,11 @@ class TrajectoryFollower:
             raise ValueError("a trajectory needs at least one point")
         spline = self._checked_spline(times, positions, velocities, accelerations, start_time)
         start = now if start_time is None else float(start_time)
-        reason = _feasibility(spline, self.limits)
-        if reason:
-            raise ValueError(reason)
         ahead = times[0] - (now - start)
         if ahead <= 0.0:
+            reason = _feasibility(spline, self.limits)
+            if reason:
+                raise ValueError(reason)
             return Plan(spline, start)
         # anchor: the current state at `now`, then the trajectory's points
         anchored = self._anchored(spline, times + (start - now), q, u)
@@ -538,7 +538,7 @@ class TrajectoryFollower:
         if junction is None:
             return Plan(anchored, now)
         step = float(np.max(np.abs(spline.positions[0] - q)))
-        if step > JOIN_STEP_RAD:
+        if step > JOIN_STEP_RAD or _feasibility(spline, self.limits):
             raise ValueError(junction)
         # The points can be followed, and the first lies within JOIN_STEP_RAD of the arm, but
         # the arm's velocity cannot be bent onto it in the few ms given: a stop planned
