@@ -416,6 +416,40 @@ def measure_loop_timing(domain_id: int, seconds: float,
             for name, log in logs.items()}
 
 
+# ------------------------------------------------------------------ messages
+
+def trajectory_msg(times: Sequence[float], positions, velocities=None,
+                   names: Sequence[str] = tuple(f"panda_joint{i}" for i in range(1, 8)),
+                   stamp_ns: int = 0):
+    """A JointTrajectory, points in ``names`` order; ``stamp_ns`` 0: start on arrival."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    msg = JointTrajectory(joint_names=list(names))
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    for k, t in enumerate(times):
+        sec = int(t)
+        point = JointTrajectoryPoint(
+            positions=[float(x) for x in positions[k]],
+            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9))))
+        if velocities is not None:
+            point.velocities = [float(x) for x in velocities[k]]
+        msg.points.append(point)
+    return msg
+
+
+def pose_msg(position, quat, frame: str):
+    """A PoseStamped in ``frame`` (a goal for the planner); ``quat`` is (x, y, z, w)."""
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = frame
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = (float(v) for v in position)
+    o.x, o.y, o.z, o.w = (float(v) for v in quat)
+    return msg
+
+
 # ------------------------------------------------------------------ fake planner heartbeat
 
 PLANNER_PRIORITY = 15  # realtime_priority of config/planner.yaml: the fake planner's too

@@ -36,13 +36,7 @@ FAR = Shape("sphere", (0.05,), [-0.6, 0.0, 0.3], name="far")
 
 
 def _goal(q) -> PoseStamped:
-    position, quat = Robot("fast", "fr3").tcp_pose(np.asarray(q, dtype=float))
-    msg = PoseStamped()
-    msg.header.frame_id = FRAME
-    p, o = msg.pose.position, msg.pose.orientation
-    p.x, p.y, p.z = (float(v) for v in position)
-    o.x, o.y, o.z, o.w = (float(v) for v in quat)
-    return msg
+    return rosutil.pose_msg(*Robot("fast", "fr3").tcp_pose(np.asarray(q, dtype=float)), FRAME)
 
 
 def test_planner_and_controller_under_a_namespace_with_the_franka_parameter_set(tmp_path):

@@ -19,11 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rosutil
-from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 from damon_ros.core.limits import joint_limits
 from damon_ros.ros import topics
@@ -40,16 +39,7 @@ TOLERANCE = 2e-3  # rad, goal tolerance of the closed loop
 
 def trajectory(times, positions, velocities=None, names=NAMES) -> JointTrajectory:
     """A JointTrajectory with a zero stamp (start on arrival), points in ``names`` order."""
-    msg = JointTrajectory(joint_names=list(names))
-    for k, t in enumerate(times):
-        sec = int(t)
-        point = JointTrajectoryPoint(
-            positions=[float(x) for x in positions[k]],
-            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9))))
-        if velocities is not None:
-            point.velocities = [float(x) for x in velocities[k]]
-        msg.points.append(point)
-    return msg
+    return rosutil.trajectory_msg(times, positions, velocities, names)
 
 
 def _log(proc: subprocess.Popen, name: str) -> str:

@@ -25,11 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import rosutil
-from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment
@@ -42,17 +41,7 @@ ACCEPTED, REJECTED = "accepted trajectory", "rejected trajectory"
 
 def trajectory(times, positions, velocities=None, names=NAMES, stamp_ns: int = 0
                ) -> JointTrajectory:
-    msg = JointTrajectory(joint_names=list(names))
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    for k, t in enumerate(times):
-        sec = int(t)
-        point = JointTrajectoryPoint(
-            positions=[float(x) for x in positions[k]],
-            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9))))
-        if velocities is not None:
-            point.velocities = [float(x) for x in velocities[k]]
-        msg.points.append(point)
-    return msg
+    return rosutil.trajectory_msg(times, positions, velocities, names, stamp_ns)
 
 
 @dataclass
@@ -201,13 +190,19 @@ def _stalls(arm: Loop) -> int:
     return sum(len(arm.lines(needle)) for needle in STALLS)
 
 
+def _refused_in_a_stall(line: str) -> bool:
+    """The controller's answer refuses a trajectory because a stall is going on (stale
+    states, or the heartbeat lapsed): like a logged stall stop, it excuses one attempt."""
+    return REJECTED in line and any(needle in line for needle in ("stale", "planner_status"))
+
+
 def _move_and_reach(arm: Loop, delta, duration=1.0, order=None) -> np.ndarray:
     for _ in range(2):
         assert arm.settle(), arm.logs()
         stalls = _stalls(arm)
         goal, line = _move(arm, delta, duration, order)
-        if REJECTED in line and any(needle in line for needle in ("stale", "planner_status")):
-            continue  # refused during a stall: the one attempt it excuses
+        if _refused_in_a_stall(line):
+            continue
         assert ACCEPTED in line, line
         if _reached(arm, goal, 2e-3) or _stalls(arm) == stalls:
             break
@@ -227,6 +222,10 @@ def test_plain_move_settles_without_overshoot(arm: Loop):
         stale = _stalls(arm)
         k = len(arm.states)
         goal, line = _move(arm, [0.3, 0, 0, 0, 0, 0, 0])
+        if _refused_in_a_stall(line):
+            reached = False
+            assert arm.settle()
+            continue
         assert ACCEPTED in line, line
         reached = _reached(arm, goal, 1e-3)
         arm.ros.spin_for(1.0)

@@ -65,12 +65,7 @@ GOAL_B = tcp_goal(READY + [-0.6, 0.15, 0.0, 0.2, 0.0, 0.0, 0.0])
 
 
 def goal_msg(position, quat, frame: str = FRAME) -> PoseStamped:
-    msg = PoseStamped()
-    msg.header.frame_id = frame
-    p, o = msg.pose.position, msg.pose.orientation
-    p.x, p.y, p.z = (float(v) for v in position)
-    o.x, o.y, o.z, o.w = (float(v) for v in quat)
-    return msg
+    return rosutil.pose_msg(position, quat, frame)
 
 
 @dataclass
