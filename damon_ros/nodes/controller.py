@@ -44,7 +44,9 @@ silently.
   silent is refused with a line.
 
 The command loop runs in a `FixedRateLoop` thread (see `FixedRateLoop` for why not an
-rclpy timer); callbacks only hand data to it under one lock, and check a trajectory
+rclpy timer). It takes the joint states itself at the start of each tick (an `Inbox`: through
+the executor the 1 kHz topic cost most of a core); the executor's callbacks (trajectories,
+heartbeats) only hand data to it under one lock, and check a trajectory
 (`TrajectoryFollower.prepare`) outside it.
 """
 
@@ -80,6 +82,7 @@ from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import clock_seconds, is_zero, stamp_seconds
+from damon_ros.ros.topic_reader import Inbox
 
 NAME = "controller"
 _GAINS = PIDGains()
@@ -197,7 +200,7 @@ class Controller(Node):
         self._state_every = max(1, round(p["rate_hz"] / p["state_rate_hz"]))
         self._cmd_pub = self.create_publisher(Float64MultiArray, topics.JOINT_COMMANDS, 10)
         self._state_pub = self.create_publisher(JointState, topics.CONTROLLER_STATE, 10)
-        self.create_subscription(JointState, p["joint_states_topic"], self._on_joint_state, 10)
+        self._joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states")
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, 10)
         self.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, self._on_heartbeat, 10)
         self._loop = start_loop(self, NAME, p["rate_hz"], self._tick, "control loop",
@@ -212,13 +215,6 @@ class Controller(Node):
 
     # -- executor side: hand data to the loop
 
-    def _on_joint_state(self, msg: JointState) -> None:
-        t = time.monotonic()
-        q = read_joint_state(self._reader, msg, self._problems, self.get_logger().info)
-        if q is None:
-            return  # not a measurement: a stream of them ends in the stale stop
-        with self._lock:
-            self._q, self._q_time = q, t
 
     def _on_heartbeat(self, _msg: DiagnosticArray) -> None:
         with self._lock:
@@ -287,7 +283,18 @@ class Controller(Node):
 
     # -- loop thread
 
+    def _take_joint_states(self, t: float) -> None:
+        """The newest good measurement among those arrived since the last tick, with its
+        arrival time. A bad one is reported (`read_joint_state`) and not used."""
+        for item in self._joint_states.take_all():
+            q = read_joint_state(self._reader, item.msg, self._problems,
+                                 self.get_logger().info)
+            if q is not None:
+                with self._lock:
+                    self._q, self._q_time = q, min(item.arrived, t)
+
     def _tick(self, t: float) -> None:
+        self._take_joint_states(t)
         now = clock_seconds(self)
         with self._lock:
             if self._q is None:
@@ -337,6 +344,7 @@ class Controller(Node):
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: stop the loop and report its timing."""
         stop_loop(self._loop, NAME)
+        self._joint_states.close()
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -10,7 +10,8 @@ Timing: the simulation step and the joint-state publication run in a `FixedRateL
 sleeping to absolute deadlines, not in an rclpy timer (a 1 kHz rclpy timer drifts and loses
 ticks while message callbacks run; see `FixedRateLoop`). Each step integrates the
 real elapsed time, so the mock arm moves in wall-clock time even when a tick is late. The
-executor only copies commands into the model under a lock.
+loop also takes the commands that arrived since its last tick (an `Inbox`: through the
+executor the 1 kHz topic cost most of a core), so the executor only serves parameters.
 
 Optional contact report (``contact_check``): with a ``scenario`` loaded, the exact mesh
 clearance (`damon_ros.core.robot.Robot("mesh")`) between the arm and the scenario's obstacles at
@@ -36,7 +37,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -54,6 +54,7 @@ from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, accept_at_run_time, declare_all
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import clock_seconds
+from damon_ros.ros.topic_reader import Inbox
 from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 NAME = "mock_panda"
@@ -170,7 +171,7 @@ class MockPanda(Node):
         self._ticks = 0
         self._contact: ContactMonitor | None = None
         self._pub = self.create_publisher(JointState, topics.JOINT_STATES, 10)
-        self.create_subscription(Float64MultiArray, topics.JOINT_COMMANDS, self._on_command, 10)
+        self._commands = Inbox(self, Float64MultiArray, topics.JOINT_COMMANDS, "commands")
         self._setup_contact_check(scenario)
         accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
         self._limits_pub = (self.create_publisher(DiagnosticArray, topics.SIM_LIMITS, 10)
@@ -203,13 +204,11 @@ class MockPanda(Node):
         self._scenario_start = float(value or clock_seconds(self))
         self.get_logger().info(f"scenario t=0 now at {self._scenario_start:.3f} s")
 
-    # -- executor side
+    # -- loop thread
 
-    def _on_command(self, msg: Float64MultiArray, info) -> None:
-        """``info`` (rclpy MessageInfo): the publisher's send time, for the limit monitor."""
-        t = time.monotonic()
-        sent = info["source_timestamp"] * 1e-9 if info and info.get("source_timestamp") \
-            else None
+    def _on_command(self, msg: Float64MultiArray, t: float, sent: float | None) -> None:
+        """One command, arrived at monotonic time ``t``; ``sent`` (the publisher's send
+        time) is for the limit monitor."""
         with self._lock:
             reason = self._sim.command(msg.data, t, sent)
             if reason is None:
@@ -220,9 +219,9 @@ class MockPanda(Node):
         if reason is not None:
             self._problems.report(f"rejected joint command: {reason}")
 
-    # -- loop thread
-
     def _tick(self, t: float) -> None:
+        for item in self._commands.take_all():
+            self._on_command(item.msg, min(item.arrived, t), item.sent)
         # Integrate the real elapsed time; a long stall is capped so that the arm never
         # jumps further than one command timeout's worth of motion in one step.
         dt = self._period if self._last_step is None else t - self._last_step
@@ -293,6 +292,7 @@ class MockPanda(Node):
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: stop the loop and report its timing."""
         log = stop_loop(self._loop, NAME)
+        self._commands.close()
         if self._monitor is not None:
             with self._lock:
                 log.info(self._monitor.summary())

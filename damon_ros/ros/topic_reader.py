@@ -1,8 +1,11 @@
-"""Draining a fast topic from a thread of its own instead of through the executor."""
+"""Taking a fast topic's messages outside the executor: in an owner's loop or a thread of
+its own."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
+from typing import NamedTuple
 
 import rclpy
 from rclpy.node import Node
@@ -11,8 +14,71 @@ from rclpy.qos import QoSProfile
 from damon_ros.ros.rate_loop import FixedRateLoop
 
 
+class Taken(NamedTuple):
+    """One message taken from an `Inbox`."""
+
+    msg: object
+    sent: float | None  # the publisher's send time (s, wall clock); None: not known
+    arrived: float  # when this process received it (s, time.monotonic())
+
+
+class Inbox:
+    """A subscription that no executor spins: its owner takes what has arrived, when it wants.
+
+    Why: rclpy's executor costs more than the message. Measured on this project's 2-core
+    machine, a controller and a mock_panda whose executors ran the other's 1 kHz topic
+    used 0.96 and 0.83 of a core, nearly all of it in the executor thread (it rebuilds its
+    wait set in Python for every callback); the same messages taken non-blocking from the
+    subscription in the 1 kHz loop's own tick cost a fraction of that, and arrive in the
+    tick that uses them instead of whenever the executor gets round to them. The
+    subscription lives on a helper node ``<node>_<suffix>`` in the same context (the
+    process's remaps apply to it) that no executor spins.
+    """
+
+    def __init__(self, node: Node, msg_type, topic: str, suffix: str,
+                 qos: QoSProfile | int = 50):
+        self._node = rclpy.create_node(f"{node.get_name()}_{suffix}", context=node.context,
+                                       namespace=node.get_namespace(), enable_rosout=False,
+                                       start_parameter_services=False)
+        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos)
+
+    @property
+    def topic(self) -> str:
+        return self._sub.topic_name
+
+    def take_all(self) -> list[Taken]:
+        """Every message waiting, oldest first; [] when none is.
+
+        ``arrived`` is the middleware's reception time moved onto the monotonic clock, not
+        the time of this call: a message that waited for the owner's next tick counts as
+        the age it really has.
+        """
+        handle, out = self._sub.handle, []
+        while True:
+            with handle:
+                taken = handle.take_message(self._sub.msg_type, False)
+            if taken is None:
+                break
+            out.append(taken)
+        if not out:
+            return []
+        mono, wall = time.monotonic(), time.time()
+        return [Taken(msg, _seconds(info, "source_timestamp"),
+                      mono - max(0.0, wall - (_seconds(info, "received_timestamp") or wall)))
+                for msg, info in out]
+
+    def close(self) -> None:
+        self._node.destroy_node()
+
+
+def _seconds(info: dict | None, key: str) -> float | None:
+    value = info.get(key) if info else None
+    return value * 1e-9 if value else None
+
+
 class TopicReader:
-    """Takes every message of a fast topic from a thread of its own, not via the executor.
+    """Takes every message of a fast topic from a thread of its own (an `Inbox` drained by
+    a `FixedRateLoop`), not via the executor.
 
     Why: measured on this project's 2-core machine, the planner's MultiThreadedExecutor
     delivered 12 of mock_panda's 1,000 joint states per second to its callback, with gaps
@@ -21,20 +87,16 @@ class TopicReader:
     30 Hz obstacle arrays waiting > 1 s about once a second behind its planning timer. A
     planner that plans from a joint state 0.5 s old starts its certified path where the
     arm no longer is; one whose obstacle data is late stops the arm for nothing.
-    This reader's subscription lives on a helper node that no executor spins
-    (``<node>_<suffix>``); a `FixedRateLoop` drains it every ``period_s`` and hands each
-    message, in order, to ``on_message`` (so a bad one is still seen and logged), then calls
-    ``on_drained`` once: slow work belongs there, once per batch, so that the loop sleeps
-    between batches and other threads waiting on the caller's locks get their turn.
+    The loop drains the inbox every ``period_s`` and hands each message, in order, to
+    ``on_message`` (so a bad one is still seen and logged), then calls ``on_drained`` once:
+    slow work belongs there, once per batch, so that the loop sleeps between batches and
+    other threads waiting on the caller's locks get their turn.
     """
 
     def __init__(self, node: Node, msg_type, topic: str, period_s: float,
                  on_message: Callable[[object], None], suffix: str = "reader",
                  qos: QoSProfile | int = 50, on_drained: Callable[[], None] | None = None):
-        self._node = rclpy.create_node(f"{node.get_name()}_{suffix}", context=node.context,
-                                       namespace=node.get_namespace(), enable_rosout=False,
-                                       start_parameter_services=False)
-        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos)
+        self._inbox = Inbox(node, msg_type, topic, suffix, qos)
         self._on_message = on_message
         self._on_drained = on_drained
         self._loop = FixedRateLoop(1.0 / period_s, self._drain, f"{suffix}_loop",
@@ -43,17 +105,12 @@ class TopicReader:
         self._loop.start()
 
     def _drain(self, _t: float) -> None:
-        handle, taken_any = self._sub.handle, False
-        while True:
-            with handle:
-                taken = handle.take_message(self._sub.msg_type, False)
-            if taken is None:
-                break
-            taken_any = True
-            self._on_message(taken[0])
-        if taken_any and self._on_drained is not None:
+        taken = self._inbox.take_all()
+        for item in taken:
+            self._on_message(item.msg)
+        if taken and self._on_drained is not None:
             self._on_drained()
 
     def close(self) -> None:
         self._loop.stop()
-        self._node.destroy_node()
+        self._inbox.close()
