@@ -330,7 +330,10 @@ def test_silent_planner_holds_the_arm(arm: Arm):
         assert arm.settle()
     print(f"\nsilent planner: holding {1e3 * stopped:.1f} ms after its last heartbeat "
           f"(timeout {1e3 * HEARTBEAT_S:.0f} ms)")
-    assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 0.1, stopped
+    # Never before the timeout; after it, within a delay a loaded 2-core machine keeps to
+    # (the quiet figure, ~0.5 s, is printed above; CI once saw 2.5 s while the
+    # controller's executor still carried the 1 kHz joint states).
+    assert HEARTBEAT_S - 0.005 < stopped < HEARTBEAT_S + 1.0, stopped
     assert arm.q()[0] < goal[0] - 0.05  # it never got there
     np.testing.assert_allclose(arm.controller_state.last.velocity, 0.0)  # holding
     assert len(rosutil.log_lines(arm.controller, f"no {topics.PLANNER_STATUS}")) == lines + 1

@@ -1,16 +1,13 @@
-"""The controller's JTC semantics, black-box over DDS (ros2_controllers' JTC test list).
+"""The controller's JTC semantics, black-box over DDS (ros2_controllers' JTC test list): a
+moving arm.
 
-Two closed loops, each a controller process from ``config/controller.yaml`` with a fake
-planner heartbeat:
-
-- ``arm``: with mock_panda, all defaults. Hold on start-up, jumbled joint order, partial
-  joints refused, invalid messages (empty, NaN, non-increasing times, non-zero final
-  velocity, too fast to follow), replace, ignore an old trajectory, a future stamp
-  approached, no overshoot on a plain move, and trajectories sent while the joint states
-  are paused (mock_panda SIGSTOPped): every one is either executed or refused with a line.
-- ``blocked``: a mock_panda whose command topic is remapped away, so it publishes joint
-  states of an arm that never moves (a blocked arm), and a controller with tolerances on:
-  path tolerance abort-and-hold, goal tolerance with ``goal_time``, partial joints allowed.
+A closed loop of a controller process from ``config/controller.yaml`` (all defaults), a
+fake planner heartbeat and mock_panda (`jtc_loop`). Hold on start-up, jumbled joint order,
+partial joints refused, invalid messages (empty, NaN, non-increasing times, non-zero final
+velocity, too fast to follow), replace, ignore an old trajectory, a future stamp
+approached, no overshoot on a plain move, and trajectories sent while the joint states
+are paused (mock_panda SIGSTOPped): every one is either executed or refused with a line.
+Tolerances and partial joints allowed: test_node_controller_jtc_blocked.py.
 
 Every wait is bounded; assertions are on behaviour (rejected with a reason, moved or not,
 which side of the goal) with margins that hold on a loaded 2-core machine.
@@ -20,105 +17,14 @@ from __future__ import annotations
 
 import signal
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 import rosutil
-from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
-from trajectory_msgs.msg import JointTrajectory
+from jtc_loop import ACCEPTED, NAMES, REJECTED, Loop, start, stop, trajectory
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment
-from damon_ros.ros.launch import read_log
-
-CONFIG = rosutil.ROOT / "config"
-NAMES = [f"panda_joint{i}" for i in range(1, 8)]
-ACCEPTED, REJECTED = "accepted trajectory", "rejected trajectory"
-
-
-def trajectory(times, positions, velocities=None, names=NAMES, stamp_ns: int = 0
-               ) -> JointTrajectory:
-    return rosutil.trajectory_msg(times, positions, velocities, names, stamp_ns)
-
-
-@dataclass
-class Loop:
-    ros: rosutil.RosClient
-    mock: object
-    controller: object
-    heartbeat: object
-    states: rosutil.Recorder
-    commands: rosutil.Recorder
-    controller_state: rosutil.Recorder
-    pub: object
-    commands_before_first_state: int = -1
-
-    def q(self) -> np.ndarray:
-        return np.array(self.states.last.position)
-
-    def lines(self, needle: str) -> list[str]:
-        return rosutil.log_lines(self.controller, needle)
-
-    def logs(self) -> str:
-        return ("\n--- controller ---\n" + read_log(self.controller)[-4000:]
-                + "\n--- mock_panda ---\n" + read_log(self.mock)[-2000:])
-
-    def settle(self, timeout_s: float = 4.0) -> bool:
-        def still() -> bool:
-            recent = self.states.messages[-100:]
-            return len(recent) == 100 and max(
-                np.max(np.abs(m.velocity)) for m in recent) < 1e-4
-        return self.ros.spin_until(still, timeout_s)
-
-    def send(self, msg: JointTrajectory, timeout_s: float = 3.0) -> str:
-        """Publish and return the controller's answer: its accepted/rejected line."""
-        before = len(self.lines(ACCEPTED)) + len(self.lines(REJECTED))
-        self.pub.publish(msg)
-        self.ros.spin_until(
-            lambda: len(self.lines(ACCEPTED)) + len(self.lines(REJECTED)) > before, timeout_s)
-        answers = [line for line in read_log(self.controller).splitlines()
-                   if ACCEPTED in line or REJECTED in line]
-        assert len(answers) == before + 1, self.logs()  # exactly one answer, none silent
-        return answers[-1]
-
-    def now_ns(self) -> int:
-        return self.ros.node.get_clock().now().nanoseconds
-
-
-def _start(ros, env, tmp, name: str, controller_params: dict, remaps=None) -> Loop:
-    controller = rosutil.start_node("controller", controller_params, env,
-                                    tmp / f"{name}_controller.log",
-                                    params_file=CONFIG / "controller.yaml")
-    loop = Loop(ros, None, controller, rosutil.start_heartbeat(env, tmp / f"{name}_hb.log"),
-                ros.record(JointState, topics.JOINT_STATES),
-                ros.record(Float64MultiArray, topics.JOINT_COMMANDS),
-                ros.record(JointState, topics.CONTROLLER_STATE),
-                ros.publisher(JointTrajectory, topics.JOINT_TRAJECTORY))
-    assert ros.wait_for_publishers(topics.JOINT_COMMANDS, 1, 60.0), loop.logs()
-    ros.spin_for(0.3)
-    loop.commands_before_first_state = len(loop.commands)
-    loop.mock = rosutil.start_node("mock_panda", None, env, tmp / f"{name}_mock.log",
-                                   params_file=CONFIG / "mock_panda.yaml", remaps=remaps)
-    assert ros.spin_until(lambda: len(loop.commands) > 10 and len(loop.states) > 10,
-                          60.0), loop.logs()
-    assert ros.wait_for_subscribers(loop.pub, 1, 10.0), loop.logs()
-    # the heartbeat flows (its process starts in seconds on a busy machine; until the
-    # controller hears it, every trajectory is refused, as it should be)
-    heartbeats = ros.record(DiagnosticArray, topics.PLANNER_STATUS)
-    assert ros.spin_until(lambda: len(heartbeats) >= 5, 60.0), loop.logs()
-    ros.spin_for(0.3)
-    return loop
-
-
-def _stop(loop: Loop | None) -> None:
-    if loop is None:
-        return
-    for proc in (loop.controller, loop.mock, loop.heartbeat):
-        if proc is not None:
-            rosutil.stop_node(proc, first_signal=signal.SIGTERM)
 
 
 @pytest.fixture(scope="module")
@@ -129,31 +35,11 @@ def arm(tmp_path_factory):
     loop = None
     try:
         with rosutil.RosClient(domain) as ros:
-            loop = _start(ros, env, tmp, "arm", {})
+            loop = start(ros, env, tmp, "arm", {})
             yield loop
     finally:
-        _stop(loop)
+        stop(loop)
 
-
-@pytest.fixture(scope="module")
-def blocked(tmp_path_factory):
-    domain = rosutil.next_domain_id(__file__)
-    tmp = tmp_path_factory.mktemp("jtc_blocked")
-    env = node_environment(domain, tmp)
-    # heartbeat watchdog off: this loop runs beside the module's other one (two 1 kHz
-    # controllers on a 2-core machine), and the fake planner then fell silent for > 1 s;
-    # the watchdog has its own tests (`arm` here, test_node_controller.py)
-    params = {"allow_partial_joints_goal": True, "constraints.panda_joint1.trajectory": 0.05,
-              "constraints.panda_joint3.goal": 0.001, "constraints.goal_time": 0.2,
-              "planner_heartbeat_timeout_s": 0.0}
-    loop = None
-    try:
-        with rosutil.RosClient(domain) as ros:
-            loop = _start(ros, env, tmp, "blocked", params,
-                          remaps={topics.JOINT_COMMANDS: "/damon_test/nowhere"})
-            yield loop
-    finally:
-        _stop(loop)
 
 
 # ----------------------------------------------------------------------------- arm
@@ -304,7 +190,9 @@ def test_a_future_stamp_is_approached_not_waited_for(arm: Loop):
     arrived = next(src for src, m in arm.states.published_after(sent)
                    if abs(m.position[1] - goal[1]) < 2e-3)
     assert moved - sent < 1.2, moved - sent  # long before the stamp (1.5 s)
-    assert 1.7 < arrived - sent < 3.0, arrived - sent
+    # not before its time (stamp + 0.5 s = 2 s after sending); on a quiet machine it
+    # arrives at ~2.1 s, on a loaded one the 1 kHz loops may lag it by seconds
+    assert 1.7 < arrived - sent < 6.0, arrived - sent
 
 
 def test_trajectories_sent_while_joint_states_are_paused_are_answered(arm: Loop):
@@ -326,52 +214,3 @@ def test_trajectories_sent_while_joint_states_are_paused_are_answered(arm: Loop)
     assert arm.settle()
     assert np.max(np.abs(arm.q() - q0)) < 2e-3  # the refused ones never ran
     _move_and_reach(arm, [0.05, 0, 0, 0, 0, 0, 0], 1.0)
-
-
-# ----------------------------------------------------------------------------- blocked
-
-def _desired(loop: Loop) -> np.ndarray:
-    return np.array(loop.controller_state.last.position)
-
-
-def test_path_tolerance_aborts_and_holds_the_measured_position(blocked: Loop):
-    q = blocked.q()
-    line = blocked.send(trajectory([1.0], [q + np.array([0.3, 0, 0, 0, 0, 0, 0])],
-                                   [np.zeros(7)]))
-    assert ACCEPTED in line, line
-    assert blocked.ros.spin_until(lambda: bool(blocked.lines("path tolerance violated")), 3.0)
-    assert "panda_joint1" in blocked.lines("path tolerance violated")[-1]
-    blocked.ros.spin_for(0.2)
-    np.testing.assert_allclose(_desired(blocked), q, atol=1e-6)  # holds where it is
-
-
-def test_goal_not_reached_within_goal_time_aborts(blocked: Loop):
-    q = blocked.q()
-    before = len(blocked.lines("goal not reached"))
-    sent = time.monotonic()
-    line = blocked.send(trajectory([0.3], [q + np.array([0, 0, 0.01, 0, 0, 0, 0])],
-                                   [np.zeros(7)]))
-    assert ACCEPTED in line, line
-    assert blocked.ros.spin_until(lambda: len(blocked.lines("goal not reached")) > before, 3.0)
-    assert time.monotonic() - sent > 0.5 - 0.05  # not before the end + goal_time
-    assert "panda_joint3" in blocked.lines("goal not reached")[-1]
-    blocked.ros.spin_for(0.2)
-    np.testing.assert_allclose(_desired(blocked), q, atol=1e-6)
-
-
-def test_partial_joints_when_allowed_hold_the_others(blocked: Loop):
-    q = blocked.q()
-    named = [4, 1]
-    line = blocked.send(trajectory([1.0], [q[named] + 0.02], [np.zeros(2)],
-                                   names=[NAMES[j] for j in named]))
-    assert ACCEPTED in line and "2 of 7 joints" in line, line
-    target = q[named] + 0.02
-    # the desired state of the end (the client may see the controller's states late)
-    assert blocked.ros.spin_until(
-        lambda: np.max(np.abs(_desired(blocked)[named] - target)) < 1e-6, 5.0), blocked.logs()
-    desired = _desired(blocked)
-    others = [j for j in range(7) if j not in named]
-    # the others hold where the controller measured them when it accepted (within 2 mrad
-    # of the test's last state: the two read different messages), the named moved 20 mrad
-    np.testing.assert_allclose(desired[others], q[others], atol=2e-3)
-    np.testing.assert_allclose(desired[named], target, atol=1e-6)
