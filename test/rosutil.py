@@ -35,6 +35,7 @@ import argparse
 import bisect
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -97,6 +98,14 @@ def stop_node(proc: subprocess.Popen, timeout: float = 5.0,
 def log_lines(proc: subprocess.Popen, needle: str) -> list[str]:
     """Lines of the node's log that contain ``needle``."""
     return [line for line in read_log(proc).splitlines() if needle in line]
+
+
+def log_time(line: str) -> float:
+    """The system time (s) of an rclpy log line: ``[LEVEL] [1796142469.394782889] [node]: …``."""
+    match = re.match(r"\[\w+\] \[(\d+\.\d+)\]", line)
+    if match is None:
+        raise ValueError(f"not an rclpy log line: {line!r}")
+    return float(match.group(1))
 
 
 @dataclass(repr=False)  # thousands of messages: a failing assert printed them

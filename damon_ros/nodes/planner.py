@@ -91,6 +91,19 @@ PARAMETERS = (
 )
 
 
+REST_RESIDUE = 1e-9
+"""rad/s, rad/s²: a trajectory's end is at rest, but a plan from a moving state leaves
+residues of ~1e-15 there after time parameterisation; they go out as exact zeros, so that
+any controller's check of the end (JTC's is float epsilon) sees a trajectory at rest."""
+
+
+def _exactly_at_rest(point: JointTrajectoryPoint) -> None:
+    for name in ("velocities", "accelerations"):
+        values = list(getattr(point, name))
+        if values and max(abs(v) for v in values) <= REST_RESIDUE:
+            setattr(point, name, [0.0] * len(values))
+
+
 class PlannerNode(Node):
     def __init__(self) -> None:
         super().__init__(NAME)
@@ -298,6 +311,7 @@ class PlannerNode(Node):
                                          accelerations=qdd.tolist())
             point.time_from_start = to_duration(t, "time_from_start")
             msg.points.append(point)
+        _exactly_at_rest(msg.points[-1])
         return msg
 
     def _publish_stop(self) -> JointTrajectory | None:
