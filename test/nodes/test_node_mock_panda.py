@@ -280,13 +280,16 @@ def test_scenario_start_and_contact_report(tmp_path: Path):
 
 
 def test_shared_memory_profile_carries_camera_images():
-    """Two processes exchange 640x480 rgb8 images through the SHM profile, fast."""
-    stats = rosutil.measure_image_latency(rosutil.next_domain_id(__file__), shm_profile=True,
-                                          count=30, rate_hz=30.0, timeout_s=20.0)
-    assert stats["received"] >= 25, stats
-    # ~2-4 ms measured here; UDP with Fast DDS defaults takes ~14 ms. A generous bound
-    # keeps this about the profile working, not about a loaded machine's scheduling.
-    assert stats["median_ms"] < 10.0, stats
+    """Two processes exchange 640x480 rgb8 images through the SHM profile, faster than
+    with Fast DDS's defaults (UDP fragments)."""
+    domain = rosutil.next_domain_id(__file__)
+    stats = {shm: rosutil.measure_image_latency(domain, shm_profile=shm, count=30,
+                                                rate_hz=30.0, timeout_s=20.0)
+             for shm in (True, False)}
+    assert stats[True]["received"] >= 25, stats
+    # ~2-4 ms against ~14 ms on a quiet machine; compared with each other, not with a
+    # number, because a loaded machine's scheduling stretches both (CI: 10 ms with SHM)
+    assert stats[True]["median_ms"] < stats[False]["median_ms"], stats
 
 
 def test_runs_with_its_defaults(tmp_path: Path):
