@@ -43,11 +43,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing
 import os
 import platform
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
@@ -61,12 +59,14 @@ from damon_ros.learning.dataset import (
     chunk_complete,
     chunk_path,
     chunk_ranges,
+    encode_chunk,
     read_sidecar,
     sidecar_header,
     summarise_chunks,
-    write_chunk,
+    write_chunk_bytes,
     write_sidecar,
 )
+from damon_ros.learning.engines import Engine, Work, make_engine
 
 SHOULDER = np.array([0.0, 0.0, 0.333])
 ARM_REACH = 0.855
@@ -331,24 +331,23 @@ def _polyline_weights(chain: np.ndarray, step: float) -> np.ndarray:
     return np.array(rows)
 
 
-_WORKER: Sampler | None = None
+def _make_sampler(config: dict, nodes: list) -> Sampler:
+    """A worker's state (see :class:`~damon_ros.learning.engines.Work`)."""
+    return Sampler(CollectConfig(**config), np.asarray(nodes, float))
 
 
-def _init_worker(config: dict, nodes: list) -> None:
-    global _WORKER
-    _WORKER = Sampler(CollectConfig(**config), np.asarray(nodes, float))
-
-
-def _run_chunk(job: tuple[str, int, int]) -> dict:
-    """Make, write and summarise one chunk (in a worker); returns only small counts."""
-    out_dir, index, size = job
+def _run_chunk(sampler: Sampler, job: tuple[int, int]) -> dict:
+    """Make and encode one chunk (in a worker, local or remote); the driver writes it.
+    Returns the file's bytes and small counts."""
+    index, size = job
     start = time.perf_counter()
-    before = dict(_WORKER.rejected)
-    arrays = _WORKER.chunk(index, size)
+    before = dict(sampler.rejected)
+    arrays = sampler.chunk(index, size)
     seconds = time.perf_counter() - start
-    write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index)
-    rejected = {k: v - before[k] for k, v in _WORKER.rejected.items()}
-    return {"index": index, "size": size, "seconds": seconds, "rejected": rejected}
+    data = encode_chunk(arrays, sampler.config.fingerprint(), index)
+    rejected = {k: v - before[k] for k, v in sampler.rejected.items()}
+    return {"index": index, "size": size, "seconds": seconds, "rejected": rejected,
+            "bytes": data}
 
 
 # ---- the collection run ---------------------------------------------------------------
@@ -356,13 +355,18 @@ def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None 
             chunk_size: int = 5000, spacing: float = 0.15, radius: float = 0.03,
             margin: float = 0.05, near_contact_share: float = 0.5,
             reach: float = ARM_REACH + HAND_LENGTH, floor: float = 0.0,
-            progress: bool = True) -> dict:
+            progress: bool = True, engine: str = "local",
+            address: str | None = None) -> dict:
     """Collect ``n_samples`` labelled samples into ``out_dir`` (resumable) and return the
-    sidecar written to ``out_dir/dataset.json``."""
+    sidecar written to ``out_dir/dataset.json``. ``engine`` "local" runs ``workers``
+    processes here; "ray" runs on the Ray cluster at ``address`` (or a local Ray instance
+    with ``workers`` CPUs) — the chunk files are the same bytes either way."""
     if not isinstance(n_samples, int) or n_samples < 1:
         raise CollectError(f"n_samples must be a positive integer, got {n_samples!r}")
+    if engine == "ray" and workers is None:
+        workers = 0  # every CPU of the cluster
     workers = (os.cpu_count() or 1) if workers is None else workers
-    if not isinstance(workers, int) or workers < 1:
+    if not isinstance(workers, int) or workers < (0 if engine == "ray" else 1):
         raise CollectError(f"workers must be a positive integer, got {workers!r}")
     config = CollectConfig(seed=seed, chunk_size=chunk_size, spacing=spacing, reach=reach,
                            radius=radius, margin=margin, near_contact_share=near_contact_share,
@@ -371,13 +375,17 @@ def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None 
     out_dir.mkdir(parents=True, exist_ok=True)
     nodes = _nodes_for(out_dir, config)
     fingerprint = config.fingerprint()
-    todo = [(str(out_dir), k, size) for k, size in chunk_ranges(n_samples, chunk_size)
+    todo = [(k, size) for k, size in chunk_ranges(n_samples, chunk_size)
             if not chunk_complete(chunk_path(out_dir, k), size, fingerprint, k)]
+    try:
+        runner = make_engine(engine, min(workers, max(1, len(todo))) if workers else None,
+                             address)
+    except ValueError as exc:
+        raise CollectError(str(exc)) from exc
     start = time.perf_counter()
-    reports = _run_jobs(todo, config, nodes, min(workers, max(1, len(todo))), n_samples,
-                        progress)
+    reports = _run_jobs(todo, config, nodes, runner, out_dir, n_samples, progress)
     wall = time.perf_counter() - start
-    return _write_sidecar(out_dir, config, nodes, n_samples, reports, wall, workers)
+    return _write_sidecar(out_dir, config, nodes, n_samples, reports, wall, workers, engine)
 
 
 def _nodes_for(out_dir: Path, config: CollectConfig) -> np.ndarray:
@@ -393,37 +401,24 @@ def _nodes_for(out_dir: Path, config: CollectConfig) -> np.ndarray:
     return workspace_nodes(config.spacing, config.reach, config.floor)
 
 
-def _run_jobs(jobs: list, config: CollectConfig, nodes: np.ndarray, workers: int,
-              n_samples: int, progress: bool) -> list[dict]:
-    """Run chunk jobs in-process (one worker) or on a process pool, with one progress bar.
-
-    The pool forks (Linux), so a plain script needs no ``__main__`` guard; each worker
-    still builds its own robot model in ``_init_worker`` — nothing made by the parent's
-    pinocchio/coal is used across processes. Where fork is missing, spawn is used."""
+def _run_jobs(jobs: list[tuple[int, int]], config: CollectConfig, nodes: np.ndarray,
+              engine: Engine, out_dir: Path, n_samples: int, progress: bool) -> list[dict]:
+    """Run chunk jobs on ``engine`` and write each chunk as it arrives, with one progress
+    bar: chunks that finished stay on disk even when a later one fails."""
     from tqdm import tqdm
 
     if not jobs:
         return []
-    done = n_samples - sum(size for _, _, size in jobs)
+    done = n_samples - sum(size for _, size in jobs)
     bar = tqdm(total=n_samples, initial=done, unit="sample", disable=not progress,
                desc="collect", smoothing=0.1)
     reports = []
-    init_args = (asdict(config), nodes.tolist())
+    work = Work(_make_sampler, (asdict(config), nodes.tolist()), _run_chunk)
     try:
-        if workers == 1:
-            _init_worker(*init_args)
-            for job in jobs:
-                reports.append(_run_chunk(job))
-                bar.update(job[2])
-        else:
-            methods = multiprocessing.get_all_start_methods()
-            ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                     initargs=init_args) as pool:
-                # a worker that dies raises BrokenProcessPool here instead of hanging
-                for future in as_completed([pool.submit(_run_chunk, job) for job in jobs]):
-                    reports.append(future.result())
-                    bar.update(reports[-1]["size"])
+        for report in engine.map(work, jobs):
+            write_chunk_bytes(chunk_path(out_dir, report["index"]), report.pop("bytes"))
+            reports.append(report)
+            bar.update(report["size"])
     finally:
         bar.close()
     return reports
@@ -440,7 +435,8 @@ def _versions() -> dict[str, str]:
 
 
 def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_samples: int,
-                   reports: list[dict], wall: float, workers: int) -> dict:
+                   reports: list[dict], wall: float, workers: int,
+                   engine: str = "local") -> dict:
     """Summarise every chunk of the data set (read back from disk) into ``dataset.json``."""
     counts, chunks = summarise_chunks(out_dir, n_samples, config.chunk_size)
     generated = sum(r["size"] for r in reports)
@@ -459,7 +455,7 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
         "rejected_this_run": rejected,
         "timing": {"wall_s_this_run": round(wall, 3), "samples_this_run": generated,
                    "samples_per_s_this_run": round(generated / wall, 1) if generated else None,
-                   "workers": workers,
+                   "workers": workers, "engine": engine,
                    "chunk_cpu_s_this_run": round(sum(r["seconds"] for r in reports), 3)},
         "versions": _versions(),
         "chunks": chunks,

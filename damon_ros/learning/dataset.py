@@ -9,6 +9,7 @@ or the robot model.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -69,15 +70,26 @@ def chunk_complete(path: Path, size: int, fingerprint: str, index: int) -> bool:
             and all(k in arrays and len(arrays[k]) == size for k, *_ in COLUMNS))
 
 
-def write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str,
-                 index: int) -> None:
-    """Write to a temporary name and rename, so an interrupted run leaves no half chunk.
-    Only data go in (no timing), so the same chunk is the same bytes on every run."""
+def encode_chunk(arrays: dict[str, np.ndarray], fingerprint: str, index: int) -> bytes:
+    """The bytes of a chunk file. Only data go in (no timing; the zip entries carry numpy's
+    fixed 1980 date), so the same chunk is the same bytes on every run and every machine:
+    workers encode, the driver writes."""
+    buffer = io.BytesIO()
+    np.savez(buffer, fingerprint=np.array(fingerprint), chunk=np.array(index), **arrays)
+    return buffer.getvalue()
+
+
+def write_chunk_bytes(path: Path, data: bytes) -> None:
+    """Write to a temporary name and rename, so an interrupted run leaves no half chunk."""
     tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, fingerprint=np.array(fingerprint), chunk=np.array(index), **arrays)
+    tmp.write_bytes(data)
     os.replace(tmp, path)
 
+
+def write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str,
+                index: int) -> None:
+    """:func:`encode_chunk` written atomically to ``path``."""
+    write_chunk_bytes(path, encode_chunk(arrays, fingerprint, index))
 
 
 # ---- the sidecar ----------------------------------------------------------------------

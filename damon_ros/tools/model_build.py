@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -52,13 +51,21 @@ def _done(out, *parts: str) -> int:
 def collect_main(argv: list[str] | None = None) -> int:
     """``damon-ros collect``: collect a labelled data set."""
     from damon_ros.learning.collect import ARM_REACH, HAND_LENGTH, collect
+    from damon_ros.learning.engines import ENGINES, EngineError
 
     parser = _parser("collect", "Collect DAMON training samples (q, obstacle point, collision) "
                                 "labelled with exact mesh distances; chunked and resumable.")
     parser.add_argument("--n", type=int, default=1_000_000, help="number of samples")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--workers", type=int, default=None,
+                        help="worker processes (local: default every core; ray: default "
+                             "every CPU of the cluster)")
+    parser.add_argument("--engine", choices=ENGINES, default="local",
+                        help="where the chunks are made: local processes or a Ray cluster")
+    parser.add_argument("--address", default=None,
+                        help="with --engine ray: host:port of a running cluster (ray start "
+                             "--head); without it a local Ray instance is started")
     parser.add_argument("--chunk-size", type=int, default=5000)
     parser.add_argument("--spacing", type=float, default=0.15, help="obstacle-node grid (m)")
     parser.add_argument("--radius", type=float, default=0.03, help="point obstacle radius (m)")
@@ -73,7 +80,8 @@ def collect_main(argv: list[str] | None = None) -> int:
         args.n, args.seed, args.out, workers=args.workers, chunk_size=args.chunk_size,
         spacing=args.spacing, radius=args.radius, margin=args.margin,
         near_contact_share=args.near_contact_share, reach=args.reach, floor=args.floor,
-        progress=not args.quiet))
+        progress=not args.quiet, engine=args.engine, address=args.address),
+        (ValueError, EngineError))
     if meta is None:
         return 2
     t, c = meta["timing"], meta["counts"]
