@@ -66,7 +66,7 @@ from damon_ros.learning.dataset import (
     write_chunk_bytes,
     write_sidecar,
 )
-from damon_ros.learning.engines import Engine, Work, make_engine
+from damon_ros.learning.engines import ENGINES, Engine, Work, make_engine
 
 SHOULDER = np.array([0.0, 0.0, 0.333])
 ARM_REACH = 0.855
@@ -164,6 +164,7 @@ class Sampler:
     inside each worker process (pinocchio/coal objects are never shared across processes)."""
 
     def __init__(self, config: CollectConfig, nodes: np.ndarray) -> None:
+        from damon_ros.core.collision import obstacle_geometry
         from damon_ros.core.robot import Robot
         from damon_ros.core.shapes import Shape
 
@@ -173,6 +174,8 @@ class Sampler:
         self.upper = np.asarray(self.robot.limits.upper, float)
         self.nodes = np.asarray(nodes, float)
         self.obstacles = [Shape("sphere", (config.radius,), p) for p in self.nodes]
+        self.geometry = [obstacle_geometry(s) for s in self.obstacles]  # built once
+        self.bounds = [s.bounding_radius() for s in self.obstacles]
         self.node_rho = np.hypot(self.nodes[:, 0], self.nodes[:, 1])
         self.node_phi = np.arctan2(self.nodes[:, 1], self.nodes[:, 0])
         self.rejected = {"self_collision": 0, "below_floor": 0, "unreachable_aim": 0}
@@ -192,8 +195,9 @@ class Sampler:
         postures, aims, chains = self.candidates(rng, int(seek.sum()))
         for j, i in enumerate(np.flatnonzero(seek)):
             q[i] = self.contact_seeking(rng, int(node[i]), postures[j], aims[j], chains[j])
-        distance = np.array([self.robot.clearance(qi, [self.obstacles[m]]).distance
-                             for qi, m in zip(q, node, strict=True)])
+        distance = np.array([self.robot.mesh_distance(qi, self.geometry[m],
+                                                      self.nodes[m], self.bounds[m])
+                             for qi, m in zip(q, node.tolist(), strict=True)])
         return {"q": q, "point": self.nodes[node], "collision": distance <= 0.0,
                 "near": distance <= self.config.margin, "distance": distance, "node": node,
                 "source": seek.astype(np.int8)}
@@ -211,7 +215,7 @@ class Sampler:
                     break
                 if not above:
                     self.rejected["below_floor"] += 1
-                elif self.robot.self_collision(q):
+                elif self.robot.self_collision(q, checked=False):
                     self.rejected["self_collision"] += 1
                 else:
                     out.append(q)
@@ -286,7 +290,7 @@ class Sampler:
             return None
         q = q.copy()
         q[0] = yaw
-        if self.robot.self_collision(q):
+        if self.robot.self_collision(q, checked=False):
             self.rejected["self_collision"] += 1
             return None
         return q
@@ -363,6 +367,9 @@ def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None 
     with ``workers`` CPUs) — the chunk files are the same bytes either way."""
     if not isinstance(n_samples, int) or n_samples < 1:
         raise CollectError(f"n_samples must be a positive integer, got {n_samples!r}")
+    if engine not in ENGINES or (address and engine != "ray"):
+        raise CollectError(f"engine must be one of {', '.join(ENGINES)} (an address needs "
+                           f"'ray'), got engine={engine!r}, address={address!r}")
     if engine == "ray" and workers is None:
         workers = 0  # every CPU of the cluster
     workers = (os.cpu_count() or 1) if workers is None else workers
