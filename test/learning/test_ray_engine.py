@@ -27,7 +27,7 @@ from damon_ros.learning.engines import LocalEngine, Work
 
 pytest.importorskip("ray")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RAY = str(Path(sys.executable).with_name("ray"))
 START_S = 150.0  # bound on one node coming up (~5 s on a quiet machine)
 N, CHUNK, SEED = 600, 200, 4
