@@ -261,15 +261,18 @@ class Sampler:
             skeletons = self.skeleton_weights @ chains
             closest = self._closest_approach(skeletons, node)
             closest[~above] = math.inf
-            for b in range(len(postures)):
-                usable = np.flatnonzero(closest[b] <= aims[b])
-                if len(usable) == 0:
-                    self.rejected["unreachable_aim"] += int(above[b])
-                    continue
-                q = self._turned(postures[b], skeletons[b, rng.choice(usable)], node, aims[b],
-                                 rng)
+            # candidates in order; those with no usable aim point are only counted (one
+            # vectorised test instead of a numpy call per candidate)
+            ok = closest <= aims[:, None]
+            tried = 0
+            for b in np.flatnonzero(ok.any(axis=1)).tolist():
+                self.rejected["unreachable_aim"] += int(above[tried:b].sum())
+                tried = b + 1
+                q = self._turned(postures[b], skeletons[b, rng.choice(np.flatnonzero(ok[b]))],
+                                 node, aims[b], rng)
                 if q is not None:
                     return q
+            self.rejected["unreachable_aim"] += int(above[tried:].sum())
             b, k = np.unravel_index(int(np.argmin(closest)), closest.shape)
             if closest[b, k] < best[0]:
                 best = (float(closest[b, k]), postures[b], skeletons[b, k])
