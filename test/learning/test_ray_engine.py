@@ -66,9 +66,12 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             os.killpg(proc.pid, signal.SIGTERM)
         except ProcessLookupError:
             pass
+    # `ray start --block` took 30 s to end on SIGTERM: after 5 s in all, each node's
+    # process group (every process of that node) is killed
+    deadline = time.monotonic() + 5.0
     for proc in procs:
         try:
-            proc.wait(30)
+            proc.wait(max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(10)
