@@ -85,7 +85,8 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         points = blob_points(camera, blob, config)
         if len(points) < config.min_points:
             continue
-        estimate = estimate_shape(camera, points, config, name=blob.color)
+        estimate = estimate_shape(camera, points, config, name=blob.color,
+                                  partial=blob.partial)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
                                len(points), blob.area_px))
     return found
