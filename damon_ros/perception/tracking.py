@@ -9,7 +9,8 @@ no ROS in it (the tracker node is a thin adapter):
    shape in the base frame;
 3. tracking (here): per colour class, detections are matched to tracks by gated nearest
    neighbour (optimal assignment) so ids stay stable; velocity is the least-squares slope of
-   the recent centres (:mod:`damon_ros.perception.velocity`); tracks unseen for
+   the recent centres (:mod:`damon_ros.perception.velocity`), zero once a track passes the
+   stationarity test (:mod:`damon_ros.perception.stationarity`); tracks unseen for
    ``max_age_s`` are dropped.
 
 The settings of all three are one :class:`~damon_ros.perception.tracker_config.TrackerConfig`.
@@ -29,6 +30,7 @@ from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
+from damon_ros.perception.stationarity import Stationarity
 from damon_ros.perception.tracker_config import TrackerConfig, load_tracker_config
 from damon_ros.perception.velocity import VelocityWindow
 
@@ -122,6 +124,7 @@ class _TrackState:
     first_seen: float
     last_seen: float
     motion: VelocityWindow
+    stillness: Stationarity
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     hits: int = 0
     partial: bool = False
@@ -142,7 +145,7 @@ class _TrackState:
         self.hits += 1
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:
-            self.velocity = velocity
+            self.velocity = self.stillness.update(stamp, shape.position, velocity)
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,
@@ -211,7 +214,8 @@ class Tracker:
         for i, d in enumerate(detections):
             if i not in matched:
                 motion = VelocityWindow(self.config.velocity_window_s)
-                state = _TrackState(self._next_id, color, d.shape, stamp, stamp, motion)
+                state = _TrackState(self._next_id, color, d.shape, stamp, stamp, motion,
+                                    Stationarity(self.config))
                 state.observe(d, stamp)
                 self._tracks.append(state)
                 self._next_id += 1
