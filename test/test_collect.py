@@ -8,19 +8,19 @@ import json
 import numpy as np
 import pytest
 
+from damon_ros.core.kinematics import Chain
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.collect import (
+    CHAIN_FRAMES,
     SHOULDER,
-    ArmChain,
     CollectConfig,
-    CollectError,
     Sampler,
     collect,
-    collect_main,
-    load_dataset,
     workspace_nodes,
 )
+from damon_ros.learning.dataset import CollectError, load_dataset
+from damon_ros.tools.model_build import collect_main
 
 N, CHUNK = 3000, 1000
 
@@ -56,7 +56,8 @@ def test_nodes_cover_the_reachable_workspace_above_the_table(nodes):
 def test_arm_chain_matches_pinocchio(robot):
     rng = np.random.default_rng(0)
     Q = rng.uniform(robot.limits.lower, robot.limits.upper, (20, 7))
-    got = ArmChain(robot.model).positions(Q)
+    chain = Chain(robot.model)
+    got = chain.positions(Q, chain.frame_block(CHAIN_FRAMES))
     tcp = np.array([robot.fk(q)[:3, 3] for q in Q])
     hand = np.array([robot.fk(q, "panda_link4")[:3, 3] for q in Q])
     assert np.allclose(got[:, -1], tcp, atol=1e-12)

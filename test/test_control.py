@@ -9,9 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from damon_ros.core.limits import joint_limits
+from damon_ros.core.limits import POSITION_LIMIT_MARGIN, joint_limits
 from damon_ros.planning.follower import (
-    POSITION_LIMIT_MARGIN,
     CommandShaper,
     PIDGains,
     TrajectoryFollower,

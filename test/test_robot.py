@@ -7,19 +7,20 @@ import math
 
 import coal
 import numpy as np
+import pinocchio as pin
 import pytest
 
-from damon_ros.core.limits import joint_limits
-from damon_ros.core.robot import (
+from damon_ros.core.collision import (
     FAST_MODEL_MARGIN,
-    READY,
-    Robot,
-    _Sdf,
+    Sdf,
     disabled_link_pairs,
     obstacle_geometry,
     signed_distance,
     surface_points,
 )
+from damon_ros.core.kinematics import Chain, load_arm, pose_error
+from damon_ros.core.limits import READY, joint_limits
+from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape, point
 from damon_ros.tools import bench_robot
 
@@ -63,11 +64,6 @@ def _random_free(robot: Robot, rng, n: int) -> list[np.ndarray]:
     return out
 
 
-def _angle(qa: np.ndarray, qb: np.ndarray) -> float:
-    """Rotation angle between two unit quaternions."""
-    return 2 * math.acos(min(1.0, abs(float(qa @ qb))))
-
-
 # ---- kinematics ---------------------------------------------------------------------------
 def test_limits_profiles():
     panda, fr3 = joint_limits("panda"), joint_limits("fr3", prefix="fr3_")
@@ -102,6 +98,27 @@ def test_frame_positions_and_batched_chain_agree_with_pinocchio(fast):
         assert np.allclose(fast.spheres.world_centers(q[None])[0], c, atol=1e-12)  # pinocchio
 
 
+@pytest.mark.parametrize("urdf", ["panda.urdf", "panda_collision.urdf"])
+def test_batched_chain_equals_pinocchio_fk(urdf):
+    """The one batched FK (collision spheres, mesh bounds, the collector's arm skeleton) gives
+    pinocchio's joint poses and frame positions, for batches and single configurations."""
+    model, _ = load_arm(urdf)
+    data, chain = model.createData(), Chain(model)
+    frames = [f"panda_link{i}" for i in range(2, 9)] + ["panda_hand", "panda_hand_tcp"]
+    block = chain.frame_block(frames)
+    Q = np.random.default_rng(9).uniform(-2.9, 2.9, (64, 7))
+    for Qb in (Q, Q[:1]):
+        T = chain.transforms(Qb).reshape(3, len(Qb), 8, 4)
+        P = chain.positions(Qb, block)
+        for n, q in enumerate(Qb):
+            pin.forwardKinematics(model, data, q)
+            pin.updateFramePlacements(model, data)
+            for j in range(8):
+                assert np.allclose(T[:, n, j], data.oMi[j].homogeneous[:3], atol=1e-12)
+            want = [data.oMf[model.getFrameId(f)].translation for f in frames]
+            assert np.allclose(P[n], want, atol=1e-12)
+
+
 def test_bad_input_raises_value_error_naming_the_problem(mesh):
     with pytest.raises(ValueError, match="unknown frame"):
         mesh.fk(READY, "no_such_frame")
@@ -122,7 +139,8 @@ def test_bad_input_raises_value_error_naming_the_problem(mesh):
 # ---- inverse kinematics -------------------------------------------------------------------
 def _check_solution(robot: Robot, result, position, quat) -> None:
     p, o = robot.tcp_pose(result.q)
-    assert np.linalg.norm(p - position) <= 1e-3 and _angle(o, quat) <= 0.01
+    p_err, o_err = pose_error(p, o, position, quat)
+    assert p_err <= 1e-3 and o_err <= 0.01
     assert robot.limits.within(result.q) and not robot.self_collision(result.q)
 
 
@@ -259,7 +277,7 @@ def test_numpy_signed_distance_matches_coal_for_every_kind():
               Shape("box", (0.1, 0.2, 0.3), [0.3, -0.2, 0.5], rng.normal(size=4)),
               Shape("cylinder", (0.06, 0.3), [0.4, 0.2, 0.3], rng.normal(size=4))]
     for shape in shapes:
-        sdf = _Sdf(shape)
+        sdf = Sdf(shape)
         geom, tf = obstacle_geometry(shape)
         P = shape.position + rng.uniform(-0.4, 0.4, (60, 3))
         ours = sdf(P.T)

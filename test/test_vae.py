@@ -9,17 +9,11 @@ import numpy as np
 import pytest
 
 from damon_ros.learning.bundle import read_meta
-from damon_ros.learning.collect import collect, load_dataset
-from damon_ros.learning.vae import (
-    Architecture,
-    VAEError,
-    evaluate,
-    load_vae,
-    rows_from,
-    save_vae,
-    train_main,
-    train_vae,
-)
+from damon_ros.learning.collect import collect
+from damon_ros.learning.dataset import load_dataset
+from damon_ros.learning.vae import Architecture, VAEError, load_vae, save_vae
+from damon_ros.learning.vae_training import evaluate, rows_from, train_vae
+from damon_ros.tools.model_build import train_main
 
 EPOCHS = 8
 

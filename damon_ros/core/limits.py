@@ -1,7 +1,11 @@
-"""Joint-limit profiles of the Franka Panda and FR3, from Franka's published tables.
+"""Joint-limit profiles of the Franka Panda and FR3, from Franka's published tables, and the
+margins kept inside them.
 
 Everything that commands the arm (trajectory generation, the controller, the mock arm)
-clamps against one of these profiles, so a real Franka would accept what we send.
+clamps against one of these profiles, so a real Franka would accept what we send. The
+margins live here together so that their order is visible in one place: the controller
+brakes to a stop :data:`POSITION_LIMIT_MARGIN` inside a limit, and IK goals and planner
+waypoints stay :data:`IK_LIMIT_MARGIN` inside, beyond that braking zone.
 """
 
 from __future__ import annotations
@@ -13,6 +17,20 @@ import numpy as np
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 """Franka's "ready" posture: mock_panda's start, IK's default seed, every test's home.
 Within the limits of both profiles."""
+
+IK_LIMIT_MARGIN = 0.02
+"""rad: IK solutions, planner waypoints and braking points keep this far inside the joint
+limits (and outside :data:`POSITION_LIMIT_MARGIN`, where the controller brakes to a stop): a
+goal on a limit is a motion that ends on it, and a Franka stops with a reflex there
+(mock_panda's monitor counted one; the soak hit joint 1's limit through a braking point and
+through an escape candidate)."""
+POSITION_LIMIT_MARGIN = 0.01
+"""rad: the command brakes to a stop this far inside each position limit. Braking to the
+limit itself let the actuator's lag carry the mock arm onto it (the soak's limit monitor
+counted joint 1 reaching 2.8973 rad); a Franka stops with a reflex there."""
+START_LIMIT_TOLERANCE = 1e-3
+"""rad: a start state may lie this far outside the joint limits and still be planned from
+(the planner checks measured joint states; a hair beyond a limit is rounding, not a fault)."""
 
 # Franka Control Interface documentation, "Limits for Panda" and "Limits for Franka Research 3".
 _PROFILES = {

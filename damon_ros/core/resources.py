@@ -1,4 +1,5 @@
-"""Where the package's shipped files are, and how they are read and fingerprinted.
+"""Where the package's shipped files are, and how they and the files we write are read and
+fingerprinted.
 
 A source checkout (tests, ``pip install -e``) keeps ``config/`` and ``models/`` beside the
 package; a colcon install puts them in ``share/damon_ros``, which ament_index knows. Every
@@ -8,6 +9,7 @@ module that needs a shipped file asks here, so the two layouts are handled in on
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from pathlib import Path
 
@@ -70,6 +72,28 @@ def sha256(path: str | os.PathLike) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def read_versioned_json(path: str | os.PathLike, fmt: str, version: int,
+                        error: type[Exception], *, missing: str, document: str,
+                        versioned: str) -> dict:
+    """A JSON object whose ``format`` is ``fmt`` and ``version`` is ``version`` (the model's
+    ``meta.json``, a data set's ``dataset.json``), or ``error`` saying which check failed:
+    ``missing`` is the whole message for an absent file, ``document`` names what the file
+    should be ("not a <fmt> <document>") and ``versioned`` whose version it is."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(missing)
+    try:
+        doc = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise error(f"{path}: not a {fmt} {document}")
+    if doc.get("version") != version:
+        raise error(f"{path}: {versioned} version {doc.get('version')!r}, this package reads "
+                    f"{version}")
+    return doc
 
 
 def read_yaml_section(path: str | os.PathLike, section: str) -> dict:

@@ -4,7 +4,7 @@ Re-routing within a camera frame means certifying a whole path — hundreds of j
 against every obstacle — in about a millisecond. numpy spends most of that on small-array
 overhead, so the forward kinematics of the sphere centres and the sphere↔shape signed
 distances are compiled with numba (cached on disk after the first call). The maths is the
-same as :func:`damon_ros.core.robot.signed_distance`; tests compare the two.
+same as :func:`damon_ros.core.collision.signed_distance`; tests compare the two.
 
 Obstacles are packed as arrays: ``kind`` (0 sphere, 1 box, 2 cylinder, 3 bounding sphere of
 a point set), ``position`` (K, 3), ``rotation`` (K, 3, 3) and ``params`` (K, 3) — sphere

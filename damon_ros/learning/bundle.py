@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from damon_ros.core.resources import default_model_dir, sha256
+from damon_ros.core.resources import default_model_dir, read_versioned_json, sha256
 
 MODEL_FORMAT = "damon_ros-model"
 MODEL_VERSION = 1
@@ -23,10 +23,6 @@ FILES = ("vae.safetensors", "graph.npz", "gmr.npz", "vae.json")
 
 class ModelError(ValueError):
     """A model directory is missing, corrupt or does not match this version."""
-
-
-
-
 
 
 def write_meta(directory: Path, meta: dict) -> Path:
@@ -44,17 +40,9 @@ def read_meta(directory: Path, required: tuple[str, ...] = FILES) -> dict:
     """Read ``meta.json`` and verify that every required file exists with its recorded hash."""
     directory = Path(directory)
     path = directory / "meta.json"
-    if not path.is_file():
-        raise ModelError(f"{directory}: no meta.json — not a damon_ros model directory")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ModelError(f"{path}: not valid JSON ({exc})") from exc
-    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
-        raise ModelError(f"{path}: not a {MODEL_FORMAT} file")
-    if meta.get("version") != MODEL_VERSION:
-        raise ModelError(f"{path}: model version {meta.get('version')!r}, this package reads "
-                         f"{MODEL_VERSION}")
+    meta = read_versioned_json(
+        path, MODEL_FORMAT, MODEL_VERSION, ModelError, document="file", versioned="model",
+        missing=f"{directory}: no meta.json — not a damon_ros model directory")
     hashes = meta.get("files", {})
     for name in required:
         file = directory / name

@@ -34,19 +34,18 @@ Choices (where the paper says only "random arm motion, with enough collision sam
   and a longer run with the same seed extends a shorter one.
 - **Output**: ``out_dir/chunk_00000.npz`` … (``np.savez``, no object arrays) written
   atomically, and ``out_dir/dataset.json`` (columns, parameters, nodes, counts, versions,
-  timing, each chunk's SHA-256). Chunks already present with matching parameters are kept.
+  timing, each chunk's SHA-256; the format is :mod:`damon_ros.learning.dataset`'s). Chunks
+  already present with matching parameters are kept.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
 import multiprocessing
 import os
 import platform
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -54,22 +53,21 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 
-from damon_ros.core.resources import sha256
-
-DATASET_FORMAT = "damon_ros-dataset"
-DATASET_VERSION = 1
-SIDECAR = "dataset.json"
-COLUMNS = (
-    ("q", 7, "float64", "joint angles panda_joint1..7 (rad)"),
-    ("point", 3, "float64", "point obstacle = obstacle node position, base frame (m)"),
-    ("collision", 1, "bool", "exact mesh distance d <= 0"),
-    ("near", 1, "bool", "exact mesh distance d <= margin"),
-    ("distance", 1, "float64", "exact signed robot-obstacle distance (m), < 0 = penetration"),
-    ("node", 1, "int32", "index of the obstacle node in 'nodes'"),
-    ("source", 1, "int8", "0 = uniform configuration, 1 = contact-seeking configuration"),
+from damon_ros.core.kinematics import Chain
+from damon_ros.learning.dataset import (
+    SIDECAR,
+    CollectError,
+    chunk_complete,
+    chunk_path,
+    chunk_ranges,
+    read_sidecar,
+    sidecar_header,
+    summarise_chunks,
+    write_chunk,
+    write_sidecar,
 )
+
 SHOULDER = np.array([0.0, 0.0, 0.333])
 ARM_REACH = 0.855
 HAND_LENGTH = 0.1
@@ -84,10 +82,6 @@ BATCH = 16  # candidate postures per contact-seeking sample (batched kinematics)
 AIM_PATIENCE = 2  # contact-seeking batches before a node gets the best closest approach
 MAX_BATCHES = 50  # candidate batches for one sample before giving up (never reached)
 OCCUPIED_PROBES = 32  # random configurations that decide a node is always occupied
-
-
-class CollectError(ValueError):
-    """Bad collection parameters or an output directory that does not match them."""
 
 
 @dataclass(frozen=True)
@@ -160,43 +154,6 @@ def _always_occupied(points: np.ndarray, robot=None) -> np.ndarray:
 
 
 # ---- sampling (inside a worker) -------------------------------------------------------
-class ArmChain:
-    """Batched forward kinematics of the frames link2 … link8, hand and TCP — the arm's
-    axis — in numpy: every Panda joint turns about its own z axis, so the chain is fixed
-    placements and z rotations. Used only to aim contact-seeking samples and to test the
-    table plane; one call handles a whole batch of candidate postures."""
-
-    def __init__(self, model: pin.Model, frames: tuple[str, ...] = CHAIN_FRAMES) -> None:
-        for j in range(1, model.njoints):
-            if model.joints[j].shortname() != "JointModelRZ" or model.parents[j] != j - 1:
-                raise ValueError("ArmChain needs a serial chain of z-revolute joints")
-        self.placements = [(model.jointPlacements[j].rotation.copy(),
-                            model.jointPlacements[j].translation.copy())
-                           for j in range(1, model.njoints)]
-        ids = [model.getFrameId(f) for f in frames]
-        if any(i >= model.nframes for i in ids):
-            raise ValueError(f"the robot model lacks one of the frames {frames}")
-        self.frame_joint = [model.frames[i].parentJoint for i in ids]
-        self.frame_offset = [model.frames[i].placement.translation.copy() for i in ids]
-
-    def positions(self, Q: np.ndarray) -> np.ndarray:
-        """Frame positions (N, K, 3) for configurations Q (N, 7)."""
-        n = len(Q)
-        rot, pos = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3))
-        joint_pose = [(rot, pos)]
-        c, s = np.cos(Q), np.sin(Q)
-        for i, (m_rot, m_pos) in enumerate(self.placements):
-            pos = pos + rot @ m_pos
-            r = rot @ m_rot
-            ci, si = c[:, i, None], s[:, i, None]
-            rot = np.stack([r[:, :, 0] * ci + r[:, :, 1] * si, r[:, :, 1] * ci - r[:, :, 0] * si,
-                            r[:, :, 2]], axis=2)
-            joint_pose.append((rot, pos))
-        return np.stack([joint_pose[j][1] + joint_pose[j][0] @ off
-                         for j, off in zip(self.frame_joint, self.frame_offset, strict=True)],
-                        axis=1)
-
-
 class Sampler:
     """Draws labelled samples for one chunk at a time. Holds the robot model, so it is built
     inside each worker process (pinocchio/coal objects are never shared across processes)."""
@@ -214,8 +171,9 @@ class Sampler:
         self.node_rho = np.hypot(self.nodes[:, 0], self.nodes[:, 1])
         self.node_phi = np.arctan2(self.nodes[:, 1], self.nodes[:, 0])
         self.rejected = {"self_collision": 0, "below_floor": 0, "unreachable_aim": 0}
-        self.chain = ArmChain(self.robot.model)
-        self.skeleton_weights = _polyline_weights(self.chain.positions(np.zeros((1, 7)))[0],
+        self.chain = Chain(self.robot.model)
+        self.frames = self.chain.frame_block(CHAIN_FRAMES)
+        self.skeleton_weights = _polyline_weights(self.arm_frames(np.zeros((1, 7)))[0],
                                                   SKELETON_STEP)
 
     def chunk(self, index: int, size: int) -> dict[str, np.ndarray]:
@@ -256,9 +214,15 @@ class Sampler:
             raise RuntimeError(f"only {len(out)} of {n} valid uniform configurations")
         return np.array(out).reshape(n, 7)
 
+    def arm_frames(self, Q: np.ndarray) -> np.ndarray:
+        """Positions (N, K, 3) of the arm's axis — the frames link2 … link8, hand and TCP —
+        for configurations Q (N, 7): to aim contact-seeking samples and to test the table
+        plane, a whole batch of candidate postures in one call."""
+        return self.chain.positions(Q, self.frames)
+
     def above_floor(self, Q: np.ndarray) -> np.ndarray:
         """Every arm frame and the TCP above the table plane, per configuration (N,)."""
-        return self.chain.positions(Q)[:, :, 2].min(axis=1) >= self.config.floor
+        return self.arm_frames(Q)[:, :, 2].min(axis=1) >= self.config.floor
 
     def candidates(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
         """``n`` batches of BATCH candidate postures with joint 1 at 0 (n, BATCH, 7), their
@@ -267,7 +231,7 @@ class Sampler:
         Q = rng.uniform(self.lower, self.upper, (n, BATCH, 7))
         Q[..., 0] = 0.0
         aims = AIM_MAX * rng.random((n, BATCH))
-        chains = self.chain.positions(Q.reshape(-1, 7)).reshape(n, BATCH, -1, 3)
+        chains = self.arm_frames(Q.reshape(-1, 7)).reshape(n, BATCH, -1, 3)
         return Q, aims, chains
 
     def contact_seeking(self, rng: np.random.Generator, node: int, postures: np.ndarray,
@@ -362,48 +326,6 @@ def _polyline_weights(chain: np.ndarray, step: float) -> np.ndarray:
     return np.array(rows)
 
 
-# ---- chunk files ----------------------------------------------------------------------
-def chunk_path(out_dir: Path, index: int) -> Path:
-    return Path(out_dir) / f"chunk_{index:05d}.npz"
-
-
-def chunk_ranges(n_samples: int, chunk_size: int) -> list[tuple[int, int]]:
-    """(index, size) of every chunk of an ``n_samples`` data set; the last may be short."""
-    return [(k, min(chunk_size, n_samples - k * chunk_size))
-            for k in range(math.ceil(n_samples / chunk_size))]
-
-
-def _read_chunk(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            return {k: f[k] for k in f.files}
-    except Exception as exc:  # zip, header or pickle refusal: all mean "not a valid chunk"
-        raise CollectError(f"{path}: unreadable chunk ({type(exc).__name__}: {exc})") from exc
-
-
-def _chunk_complete(path: Path, size: int, fingerprint: str, index: int) -> bool:
-    """A chunk counts as done when it loads and matches the parameters, index and size."""
-    if not path.is_file():
-        return False
-    try:
-        arrays = _read_chunk(path)
-    except CollectError:
-        return False
-    return (str(arrays.get("fingerprint", "")) == fingerprint
-            and int(arrays.get("chunk", -1)) == index
-            and all(k in arrays and len(arrays[k]) == size for k, *_ in COLUMNS))
-
-
-def _write_chunk(path: Path, arrays: dict[str, np.ndarray], fingerprint: str,
-                 index: int) -> None:
-    """Write to a temporary name and rename, so an interrupted run leaves no half chunk.
-    Only data go in (no timing), so the same chunk is the same bytes on every run."""
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, fingerprint=np.array(fingerprint), chunk=np.array(index), **arrays)
-    os.replace(tmp, path)
-
-
 _WORKER: Sampler | None = None
 
 
@@ -419,7 +341,7 @@ def _run_chunk(job: tuple[str, int, int]) -> dict:
     before = dict(_WORKER.rejected)
     arrays = _WORKER.chunk(index, size)
     seconds = time.perf_counter() - start
-    _write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index)
+    write_chunk(chunk_path(Path(out_dir), index), arrays, _WORKER.config.fingerprint(), index)
     rejected = {k: v - before[k] for k, v in _WORKER.rejected.items()}
     return {"index": index, "size": size, "seconds": seconds, "rejected": rejected}
 
@@ -445,7 +367,7 @@ def collect(n_samples: int, seed: int, out_dir: str | Path, workers: int | None 
     nodes = _nodes_for(out_dir, config)
     fingerprint = config.fingerprint()
     todo = [(str(out_dir), k, size) for k, size in chunk_ranges(n_samples, chunk_size)
-            if not _chunk_complete(chunk_path(out_dir, k), size, fingerprint, k)]
+            if not chunk_complete(chunk_path(out_dir, k), size, fingerprint, k)]
     start = time.perf_counter()
     reports = _run_jobs(todo, config, nodes, min(workers, max(1, len(todo))), n_samples,
                         progress)
@@ -515,26 +437,12 @@ def _versions() -> dict[str, str]:
 def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_samples: int,
                    reports: list[dict], wall: float, workers: int) -> dict:
     """Summarise every chunk of the data set (read back from disk) into ``dataset.json``."""
-    chunks, counts = [], {"collision": 0, "near": 0, "contact_seeking": 0,
-                          "collision_contact_seeking": 0}
-    for k, size in chunk_ranges(n_samples, config.chunk_size):
-        path = chunk_path(out_dir, k)
-        arrays = _read_chunk(path)
-        counts["collision"] += int(arrays["collision"].sum())
-        counts["near"] += int(arrays["near"].sum())
-        seeking = arrays["source"] == 1
-        counts["contact_seeking"] += int(seeking.sum())
-        counts["collision_contact_seeking"] += int((arrays["collision"] & seeking).sum())
-        chunks.append({"file": path.name, "rows": size, "sha256": sha256(path)})
-    counts["samples"] = n_samples
-    counts["free"] = n_samples - counts["collision"]
+    counts, chunks = summarise_chunks(out_dir, n_samples, config.chunk_size)
     generated = sum(r["size"] for r in reports)
     rejected = {k: sum(r["rejected"][k] for r in reports) for k in
                 ("self_collision", "below_floor", "unreachable_aim")}
-    meta = {
-        "format": DATASET_FORMAT, "version": DATASET_VERSION,
-        "columns": [{"name": n, "width": w, "dtype": t, "description": d}
-                    for n, w, t, d in COLUMNS],
+    return write_sidecar(out_dir, {
+        **sidecar_header(),
         "n_samples": n_samples, "seed": config.seed, "config": asdict(config),
         "fingerprint": config.fingerprint(), "radius": config.radius, "margin": config.margin,
         "spacing": config.spacing,
@@ -550,106 +458,4 @@ def _write_sidecar(out_dir: Path, config: CollectConfig, nodes: np.ndarray, n_sa
                    "chunk_cpu_s_this_run": round(sum(r["seconds"] for r in reports), 3)},
         "versions": _versions(),
         "chunks": chunks,
-    }
-    (out_dir / SIDECAR).write_text(json.dumps(meta, indent=1) + "\n")
-    return meta
-
-
-# ---- reading --------------------------------------------------------------------------
-def read_sidecar(out_dir: str | Path) -> dict:
-    """``dataset.json`` of a data set directory, with its format checked."""
-    path = Path(out_dir) / SIDECAR
-    if not path.is_file():
-        raise CollectError(f"{path}: missing — not a damon_ros data set directory")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CollectError(f"{path}: not valid JSON ({exc})") from exc
-    if not isinstance(meta, dict) or meta.get("format") != DATASET_FORMAT:
-        raise CollectError(f"{path}: not a {DATASET_FORMAT} sidecar")
-    if meta.get("version") != DATASET_VERSION:
-        raise CollectError(f"{path}: data set version {meta.get('version')!r}, this package "
-                           f"reads {DATASET_VERSION}")
-    for key in ("n_samples", "fingerprint", "nodes", "chunks", "columns"):
-        if not meta.get(key):
-            raise CollectError(f"{path}: no '{key}' entry")
-    return meta
-
-
-def load_dataset(out_dir: str | Path,
-                 verify_hashes: bool = True) -> tuple[dict[str, np.ndarray], dict]:
-    """(data, sidecar) of a collected data set. ``data`` holds one array per column, all
-    with N rows — ``q`` (N,7), ``point`` (N,3), ``collision``, ``near``, ``distance``,
-    ``node``, ``source`` and ``self_collision`` (all False: self-colliding configurations are
-    rejected at collection; the key is there for callers that mask them). The obstacle nodes
-    are ``np.asarray(sidecar["nodes"])`` (M,3). Checked against the sidecar: every chunk
-    present, unmodified (SHA-256), of the right size and dtype, node indices in range."""
-    out_dir = Path(out_dir)
-    meta = read_sidecar(out_dir)
-    parts: dict[str, list[np.ndarray]] = {name: [] for name, *_ in COLUMNS}
-    for entry in meta["chunks"]:
-        path = out_dir / entry["file"]
-        if not path.is_file():
-            raise CollectError(f"{path}: listed in {SIDECAR} but missing")
-        if verify_hashes and sha256(path) != entry["sha256"]:
-            raise CollectError(f"{path}: SHA-256 does not match {SIDECAR} — the chunk was "
-                               "truncated, replaced or modified")
-        arrays = _read_chunk(path)
-        for name, width, dtype, _ in COLUMNS:
-            a = arrays.get(name)
-            shape = (entry["rows"],) if width == 1 else (entry["rows"], width)
-            if a is None or a.shape != shape or a.dtype != np.dtype(dtype):
-                got = None if a is None else f"{a.dtype}{a.shape}"
-                raise CollectError(f"{path}: column '{name}' should be {dtype}{shape}, got {got}")
-            parts[name].append(a)
-    data = {name: np.concatenate(chunks) for name, chunks in parts.items()}
-    if len(data["q"]) != meta["n_samples"]:
-        raise CollectError(f"{out_dir}: {len(data['q'])} rows, {SIDECAR} says "
-                           f"{meta['n_samples']}")
-    n_nodes = len(meta["nodes"])
-    if data["node"].min() < 0 or data["node"].max() >= n_nodes:
-        raise CollectError(f"{out_dir}: node indices outside the {n_nodes} nodes")
-    data["self_collision"] = np.zeros(len(data["q"]), bool)
-    return data, meta
-
-
-# ---- command line ---------------------------------------------------------------------
-def collect_main(argv: list[str] | None = None) -> int:
-    """``damon-ros collect``: collect a labelled data set."""
-    parser = argparse.ArgumentParser(
-        prog="damon-ros collect",
-        description="Collect DAMON training samples (q, obstacle point, collision) labelled "
-                    "with exact mesh distances; chunked and resumable.")
-    parser.add_argument("--n", type=int, default=1_000_000, help="number of samples")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    parser.add_argument("--chunk-size", type=int, default=5000)
-    parser.add_argument("--spacing", type=float, default=0.15, help="obstacle-node grid (m)")
-    parser.add_argument("--radius", type=float, default=0.03, help="point obstacle radius (m)")
-    parser.add_argument("--margin", type=float, default=0.05, help="λ for the 'near' flag (m)")
-    parser.add_argument("--near-contact-share", type=float, default=0.5,
-                        help="share of contact-seeking configurations")
-    parser.add_argument("--reach", type=float, default=ARM_REACH + HAND_LENGTH,
-                        help="node ball radius about the shoulder (m)")
-    parser.add_argument("--floor", type=float, default=0.0, help="table plane height (m)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
-    try:
-        meta = collect(args.n, args.seed, args.out, workers=args.workers,
-                       chunk_size=args.chunk_size, spacing=args.spacing, radius=args.radius,
-                       margin=args.margin, near_contact_share=args.near_contact_share,
-                       reach=args.reach, floor=args.floor, progress=not args.quiet)
-    except ValueError as exc:
-        print(f"damon-ros collect: {exc}", file=sys.stderr)
-        return 2
-    t, c = meta["timing"], meta["counts"]
-    print(f"{meta['n_samples']} samples, {meta['n_nodes']} obstacle nodes, "
-          f"colliding {c['collision']} ({100 * meta['collision_ratio']:.1f} %), "
-          f"within margin {c['near']} ({100 * meta['near_ratio']:.1f} %); "
-          f"this run {t['samples_this_run']} samples in {t['wall_s_this_run']:.1f} s "
-          f"({t['samples_per_s_this_run']} /s) -> {args.out}")
-    return 0
-
-
-main = collect_main  # the name ``damon-ros`` (cli.SUBCOMMANDS) calls
+    })

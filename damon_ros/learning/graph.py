@@ -13,8 +13,8 @@ Where this project goes further (each measured in the build report):
   space cannot keep every joint-space neighbour close, and these edges are what lets a
   route hop from one obstacle node's subgraph to the next.
 
-The graph is stored as CSR arrays (fast to search and to save as npz); :meth:`to_networkx`
-gives the paper's NetworkX dict-of-dicts view of any subgraph.
+The graph is stored as CSR arrays (fast to search and to save as npz) where the paper uses a
+NetworkX dict of dicts.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import networkx as nx
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
@@ -77,20 +76,6 @@ class LatentGraph:
     def adjacency(self) -> sparse.csr_matrix:
         n = self.n_vertices
         return sparse.csr_matrix((self.weights, self.indices, self.indptr), shape=(n, n))
-
-    def to_networkx(self, node_ids: np.ndarray | None = None) -> nx.Graph:
-        """The paper's data model: a NetworkX graph of the chosen subgraphs (all if None)."""
-        graph = nx.Graph()
-        keep = np.ones(self.n_vertices, bool)
-        if node_ids is not None:
-            keep = np.isin(self.node, node_ids)
-        for v in np.flatnonzero(keep):
-            graph.add_node(int(v), z=self.z[v], node=int(self.node[v]), safe=bool(self.safe[v]))
-        coo = sparse.triu(self.adjacency()).tocoo()
-        for u, v, w in zip(coo.row, coo.col, coo.data, strict=True):
-            if keep[u] and keep[v]:
-                graph.add_edge(int(u), int(v), weight=float(w))
-        return graph
 
     def connectivity(self) -> dict[str, float]:
         """Share of safe vertices in the largest connected component, overall and per

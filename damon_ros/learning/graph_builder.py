@@ -1,4 +1,4 @@
-"""``damon-ros build-graph``: collected data + trained VAE → the latent graph and the GMR.
+"""Collected data + trained VAE → the latent graph and the GMR (``damon-ros build-graph``).
 
 Completes a model directory written by ``damon-ros train``: builds the two-layer graph at
 the requested density N, removes graph edges along which the exact meshes self-collide
@@ -9,10 +9,8 @@ everything with hashes in ``meta.json``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing as mp
-import sys
 import time
 from pathlib import Path
 
@@ -109,47 +107,34 @@ def build_model_graph(data: dict, data_meta: dict, codec, config: GraphBuildConf
     return graph, stats
 
 
-def main(argv: list[str] | None = None) -> int:
-    from damon_ros.learning.bundle import write_meta
-    from damon_ros.learning.collect import load_dataset
-    from damon_ros.learning.gmr import CollisionGMR
+def load_inputs(data_dir: str | Path, model: Path) -> tuple[dict, dict, object, dict]:
+    """(data, data set sidecar, the model's VAE, its ``meta.json``) — the inputs of
+    :func:`complete_model` for the model directory ``model`` that ``damon-ros train`` wrote."""
+    from damon_ros.learning.dataset import load_dataset
     from damon_ros.learning.vae import load_vae
 
-    parser = argparse.ArgumentParser(prog="damon-ros build-graph",
-                                     description="Build the latent graph and fit the GMR.")
-    parser.add_argument("--data", required=True, help="directory written by damon-ros collect")
-    parser.add_argument("--model", required=True, help="model directory from damon-ros train")
-    parser.add_argument("--n-vertices", type=int, default=GraphBuildConfig.n_vertices)
-    parser.add_argument("--grid", type=int, default=GraphBuildConfig.grid_size)
-    parser.add_argument("--k-latent", type=int, default=GraphBuildConfig.k_latent)
-    parser.add_argument("--k-joint", type=int, default=GraphBuildConfig.k_joint)
-    parser.add_argument("--gmm-components", type=int, default=8)
-    parser.add_argument("--margin", type=float, default=0.02, help="λ of p(collision) (m)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    model = Path(args.model)
-    try:
-        data, data_meta = load_dataset(args.data)
-        meta = json.loads((model / "meta.json").read_text())
-        codec = load_vae(model, meta.get("vae"))
-    except (ValueError, OSError, json.JSONDecodeError) as exc:
-        print(f"damon-ros build-graph: {exc}", file=sys.stderr)
-        return 2
-    config = GraphBuildConfig(n_vertices=args.n_vertices, grid_size=args.grid,
-                              k_latent=args.k_latent, k_joint=args.k_joint, seed=args.seed)
-    graph, stats = build_model_graph(data, data_meta, codec, config, args.workers,
-                                     not args.quiet)
+    data, data_meta = load_dataset(data_dir)
+    meta = json.loads((model / "meta.json").read_text())
+    return data, data_meta, load_vae(model, meta.get("vae")), meta
+
+
+def complete_model(model: Path, data: dict, data_meta: dict, codec, meta: dict,
+                   config: GraphBuildConfig, gmm_components: int, margin: float,
+                   workers: int = 2, progress: bool = True) -> dict:
+    """Build, prune and save the graph, fit and save the GMR (λ = ``margin``), record both in
+    ``meta.json``; returns the build statistics."""
+    from damon_ros.learning.bundle import write_meta
+    from damon_ros.learning.gmr import CollisionGMR
+
+    graph, stats = build_model_graph(data, data_meta, codec, config, workers, progress)
     graph.save(model / "graph.npz")
     t0 = time.perf_counter()
     obstacle_rows = graph.distance > -0.5  # self-colliding vertices carry -1, not a clearance
     gmr = CollisionGMR.fit(graph.z[obstacle_rows], graph.distance[obstacle_rows],
-                           args.gmm_components, args.margin, args.seed)
+                           gmm_components, margin, config.seed)
     gmr.save(model / "gmr.npz")
     stats["gmr_seconds"] = time.perf_counter() - t0
-    meta.update(graph=stats, graph_config=config.__dict__, margin=args.margin,
-                gmr={"components": args.gmm_components, "margin": args.margin})
+    meta.update(graph=stats, graph_config=config.__dict__, margin=margin,
+                gmr={"components": gmm_components, "margin": margin})
     write_meta(model, meta)
-    print(json.dumps(stats, indent=1))
-    return 0
+    return stats

@@ -38,10 +38,8 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
@@ -56,42 +54,43 @@ from damon_ros.planning.follower import (
 from damon_ros.planning.trajectory import METHODS
 from damon_ros.ros import topics
 from damon_ros.ros.inputs import JointStateReader, joint_names, read_joint_state
+from damon_ros.ros.node_loop import start_loop, stop_loop
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import declare
+from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
-from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority
-from damon_ros.ros.stamps import stamp_seconds
+from damon_ros.ros.stamps import clock_seconds, is_zero, stamp_seconds
 
 NAME = "controller"
 WARN_EVERY_S = 5.0
 _DEFAULT_GAINS = PIDGains()
 
 PARAMETERS = (
-    ("joints", "joint names in command order; empty: <joint_prefix>joint1..7"),
-    ("joint_prefix", "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
-    ("limit_profile", f"limits every command respects: {' | '.join(PROFILES)}"),
-    ("rate_hz", "command rate (Hz)"),
-    ("state_rate_hz", "/damon/controller_state rate (Hz)"),
-    ("interpolation", f"between trajectory points: {' | '.join(METHODS)}"),
-    ("p", "proportional gain per joint (1/s)"),
-    ("i", "integral gain per joint (1/s^2)"),
-    ("d", "derivative gain per joint (-)"),
-    ("i_clamp", "largest integral contribution per joint (rad/s), anti-windup"),
-    ("ff_velocity_scale", "feed-forward velocity scale per joint"),
-    ("joint_state_timeout_s", "older joint states stop the arm (s)"),
-    ("planner_heartbeat_timeout_s", "hold when the planner is silent this long; 0: off (s)"),
-    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+    Param("joints", (), "joint names in command order; empty: <joint_prefix>joint1..7"),
+    Param("joint_prefix", "panda_",
+          "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
+    Param("limit_profile", "panda", f"limits every command respects: {' | '.join(PROFILES)}"),
+    Param("rate_hz", 1000.0, "command rate (Hz)", 1.0, 10000.0),
+    Param("state_rate_hz", 100.0, "/damon/controller_state rate (Hz)", 0.1, 10000.0),
+    Param("interpolation", "quintic", f"between trajectory points: {' | '.join(METHODS)}"),
+    Param("p", tuple(_DEFAULT_GAINS.p.tolist()), "proportional gain per joint (1/s)"),
+    Param("i", tuple(_DEFAULT_GAINS.i.tolist()), "integral gain per joint (1/s^2)"),
+    Param("d", tuple(_DEFAULT_GAINS.d.tolist()), "derivative gain per joint (-)"),
+    Param("i_clamp", tuple(_DEFAULT_GAINS.i_clamp.tolist()),
+          "largest integral contribution per joint (rad/s), anti-windup"),
+    Param("ff_velocity_scale", tuple(_DEFAULT_GAINS.ff_velocity_scale.tolist()),
+          "feed-forward velocity scale per joint"),
+    Param("joint_state_timeout_s", 0.05, "older joint states stop the arm (s)", 0.001, 10.0),
+    Param("planner_heartbeat_timeout_s", 0.0,
+          "hold when the planner is silent this long; 0: off (s)", 0.0, 3600.0),
+    Param("realtime_priority", 20,
+          "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
 )
-
-
-def _seconds(duration) -> float:
-    return duration.sec + 1e-9 * duration.nanosec
 
 
 def trajectory_arrays(msg: JointTrajectory):
     """(times, positions, velocities, accelerations) as plain lists, message joint order."""
     points = msg.points
-    return ([_seconds(p.time_from_start) for p in points],
+    return ([stamp_seconds(p.time_from_start) for p in points],
             [list(p.positions) for p in points],
             [list(p.velocities) for p in points],
             [list(p.accelerations) for p in points])
@@ -102,7 +101,7 @@ class Controller(Node):
 
     def __init__(self) -> None:
         super().__init__(NAME)
-        p = self._declare_parameters()
+        p = declare_all(self, PARAMETERS)
         self.limits = joint_limits(p["limit_profile"])
         self.names = joint_names(p["joints"], p["joint_prefix"])
         gains = PIDGains(*(np.asarray(p[k], dtype=float) for k in
@@ -126,41 +125,13 @@ class Controller(Node):
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, 10)
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, 10)
         self.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, self._on_heartbeat, 10)
-        self._loop = FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
-                                          on_error=self._on_loop_error)
-        refused = set_realtime_priority(p["realtime_priority"])
-        if refused:
-            self.get_logger().warning(refused)
-        self._loop.start()
+        self._loop = start_loop(self, NAME, p["rate_hz"], self._tick, "control loop",
+                                p["realtime_priority"])
         self.get_logger().info(
             f"driving {self.names[0]}..{self.names[-1]} at {p['rate_hz']:g} Hz, profile "
             f"{self.limits.profile}, {p['interpolation']} interpolation, joint-state timeout "
             f"{self._js_timeout:g} s, planner heartbeat "
             f"{f'{self._hb_timeout:g} s' if self._hb_timeout > 0 else 'off'}")
-
-    def _declare_parameters(self) -> dict:
-        d = declare
-        doc = dict(PARAMETERS)
-        g = _DEFAULT_GAINS
-        p = {
-            "joints": d(self, "joints", Parameter.Type.STRING_ARRAY, doc["joints"]),
-            "joint_prefix": d(self, "joint_prefix", "panda_", doc["joint_prefix"]),
-            "limit_profile": d(self, "limit_profile", "panda", doc["limit_profile"]),
-            "rate_hz": d(self, "rate_hz", 1000.0, doc["rate_hz"], low=1.0, high=10000.0),
-            "state_rate_hz": d(self, "state_rate_hz", 100.0, doc["state_rate_hz"],
-                               low=0.1, high=10000.0),
-            "interpolation": d(self, "interpolation", "quintic", doc["interpolation"]),
-            "joint_state_timeout_s": d(self, "joint_state_timeout_s", 0.05,
-                                       doc["joint_state_timeout_s"], low=0.001, high=10.0),
-            "planner_heartbeat_timeout_s": d(self, "planner_heartbeat_timeout_s", 0.0,
-                                             doc["planner_heartbeat_timeout_s"],
-                                             low=0.0, high=3600.0),
-            "realtime_priority": d(self, "realtime_priority", 20, doc["realtime_priority"],
-                                   low=0, high=99),
-        }
-        for k in ("p", "i", "d", "i_clamp", "ff_velocity_scale"):
-            p[k] = d(self, k, getattr(g, k).tolist(), doc[k])
-        return p
 
     # -- executor side: hand data to the loop
 
@@ -185,10 +156,9 @@ class Controller(Node):
             log.info("empty trajectory: stopping and holding the current position")
             return
         times, pos, vel, acc = trajectory_arrays(msg)
-        start = None if msg.header.stamp.sec == 0 and msg.header.stamp.nanosec == 0 \
-            else stamp_seconds(msg.header.stamp)
+        start = None if is_zero(msg.header.stamp) else stamp_seconds(msg.header.stamp)
         reason = validate_trajectory(msg.joint_names, self.names, times, pos, vel, acc,
-                                     self.limits, start_time=start, now=self._ros_now())
+                                     self.limits, start_time=start, now=clock_seconds(self))
         if reason is None:
             try:
                 arrays = reorder_points(msg.joint_names, self.names, times, pos, vel, acc)
@@ -203,13 +173,10 @@ class Controller(Node):
         log.info(f"accepted trajectory: {len(msg.points)} points over {times[-1]:.3f} s, "
                  f"{'starting now' if start is None else f'starting at t = {start:.3f}'}")
 
-    def _ros_now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
     # -- loop thread
 
     def _tick(self, t: float) -> None:
-        now = self._ros_now()
+        now = clock_seconds(self)
         with self._lock:
             if self._q is None:
                 return  # no measurement yet: publish nothing (module doc)
@@ -243,7 +210,8 @@ class Controller(Node):
             self._hb_lapsed = True
             self._follower.hold(q)
             self.get_logger().warning(
-                f"no {topics.PLANNER_STATUS} for {self._hb_timeout:g} s: trajectory stopped, holding")
+                f"no {topics.PLANNER_STATUS} for {self._hb_timeout:g} s: trajectory stopped, "
+                "holding")
         elif self._hb_lapsed and self._follower.active:
             self._follower.hold(q)  # still no heartbeat: a new trajectory must not run
         return self._follower.update(now, q)
@@ -253,16 +221,9 @@ class Controller(Node):
         return JointState(name=self.names, position=q_d.tolist(), velocity=qd_d.tolist(),
                           effort=self._follower.error.tolist())
 
-    def _on_loop_error(self, exc: BaseException) -> None:
-        if not self.context.ok():
-            return  # publishing failed because ROS is shutting down: nothing to report
-        self.get_logger().error(f"control loop stopped: {type(exc).__name__}: {exc}")
-
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: stop the loop and report its timing."""
-        self._loop.stop()
-        # ROS may already be shut down (rosout gone): a logger outside the node prints only.
-        rclpy.logging.get_logger(f"{NAME}.shutdown").info(self._loop.summary())
+        stop_loop(self._loop, NAME)
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -46,10 +46,10 @@ from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.perception.camera import Camera, load_camera
 from damon_ros.ros import topics
 from damon_ros.ros.markers import class_rgba, shape_to_marker
+from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import declare
-from damon_ros.ros.rate_loop import set_realtime_priority
-from damon_ros.ros.stamps import to_stamp
+from damon_ros.ros.parameters import Param, declare_all
+from damon_ros.ros.stamps import clock_seconds, to_stamp
 from damon_ros.simulation.renderer import (
     RenderSettings,
     load_render_settings,
@@ -64,20 +64,26 @@ RENDER_MARGIN_S = 0.001
 """Added to the predicted render time, so that the stamp is rarely passed before publishing."""
 
 PARAMETERS = (
-    ("scenario", "scenario file whose obstacles are rendered (required)"),
-    ("fps", "frames per second"),
-    ("camera_config", "camera file (intrinsics, base_T_camera, mock_render); '' = shipped"),
-    ("depth_noise_std_m", "depth noise std (m); < 0: the camera file's mock_render value"),
-    ("dropout", "fraction of depth pixels with no return; < 0: the camera file's value"),
-    ("background_depth_m", "depth of the grey backdrop (m), 0 = no return; < 0: file's value"),
-    ("seed", "noise seed; < 0: the camera file's value"),
-    ("time_scale", "scenario seconds per ROS second"),
-    ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
-    ("publish_ground_truth", f"publish the scenario's obstacles on {topics.SIM_OBSTACLES}"),
-    ("publish_images", "render and publish the camera images (false: ground truth only, "
-                       "for runs without perception)"),
-    ("truth_lifetime_frames", "lifetime of a ground-truth marker, in frames"),
-    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+    Param("scenario", "", "scenario file whose obstacles are rendered (required)"),
+    Param("fps", 30.0, "frames per second", 0.1, 240.0),
+    Param("camera_config", "",
+          "camera file (intrinsics, base_T_camera, mock_render); '' = shipped"),
+    Param("depth_noise_std_m", -1.0,
+          "depth noise std (m); < 0: the camera file's mock_render value"),
+    Param("dropout", -1.0, "fraction of depth pixels with no return; < 0: the camera file's value"),
+    Param("background_depth_m", -1.0,
+          "depth of the grey backdrop (m), 0 = no return; < 0: file's value"),
+    Param("seed", -1, "noise seed; < 0: the camera file's value"),
+    Param("time_scale", 1.0, "scenario seconds per ROS second", 0.0, 100.0),
+    Param("scenario_start_time_s", 0.0, "ROS time (s) of scenario time 0; 0: this node's start"),
+    Param("publish_ground_truth", True,
+          f"publish the scenario's obstacles on {topics.SIM_OBSTACLES}"),
+    Param("publish_images", True, "render and publish the camera images (false: ground truth "
+                                  "only, for runs without perception)"),
+    Param("truth_lifetime_frames", 3.0, "lifetime of a ground-truth marker, in frames",
+          0.0, 1000.0),
+    Param("realtime_priority", 5,
+          "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
 )
 
 
@@ -125,7 +131,7 @@ class MockCamera(Node):
 
     def __init__(self) -> None:
         super().__init__(NAME)
-        p = self._declare_parameters()
+        p = declare_all(self, PARAMETERS)
         if not p["scenario"]:
             raise ValueError("parameter scenario is required: the scenario file to render")
         self.scenario: Scenario = load_scenario(p["scenario"])
@@ -147,14 +153,13 @@ class MockCamera(Node):
         self._overruns = 0
         self._pub_color = self.create_publisher(Image, topics.COLOR_IMAGE, qos_profile_sensor_data)
         self._pub_depth = self.create_publisher(Image, topics.DEPTH_IMAGE, qos_profile_sensor_data)
-        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO,
+                                               qos_profile_sensor_data)
         self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
-        self.start_time = float(p["scenario_start_time_s"] or self._now())
+        self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
         self.create_timer(self.period, self._frame)
-        refused = set_realtime_priority(p["realtime_priority"])
-        if refused:
-            self.get_logger().warning(refused)
+        use_realtime_priority(self, p["realtime_priority"])
         s = self.settings
         self.get_logger().info(
             f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles), "
@@ -162,38 +167,11 @@ class MockCamera(Node):
             f"{s.depth_noise_std_m:g} m, dropout {s.dropout:g}, seed {s.seed}, scenario t=0 at "
             f"{self.start_time:.3f} s, time scale {self.time_scale:g}")
 
-    def _declare_parameters(self) -> dict:
-        d = declare
-        doc = dict(PARAMETERS)
-        return {
-            "scenario": d(self, "scenario", "", doc["scenario"]),
-            "fps": d(self, "fps", 30.0, doc["fps"], low=0.1, high=240.0),
-            "camera_config": d(self, "camera_config", "", doc["camera_config"]),
-            "depth_noise_std_m": d(self, "depth_noise_std_m", -1.0, doc["depth_noise_std_m"]),
-            "dropout": d(self, "dropout", -1.0, doc["dropout"]),
-            "background_depth_m": d(self, "background_depth_m", -1.0,
-                                    doc["background_depth_m"]),
-            "seed": d(self, "seed", -1, doc["seed"]),
-            "time_scale": d(self, "time_scale", 1.0, doc["time_scale"], low=0.0, high=100.0),
-            "scenario_start_time_s": d(self, "scenario_start_time_s", 0.0,
-                                       doc["scenario_start_time_s"]),
-            "publish_ground_truth": d(self, "publish_ground_truth", True,
-                                      doc["publish_ground_truth"]),
-            "publish_images": d(self, "publish_images", True, doc["publish_images"]),
-            "truth_lifetime_frames": d(self, "truth_lifetime_frames", 3.0,
-                                       doc["truth_lifetime_frames"], low=0.0, high=1000.0),
-            "realtime_priority": d(self, "realtime_priority", 5, doc["realtime_priority"],
-                                   low=0, high=99),
-        }
-
-    def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
     def scenario_time(self, ros_time: float) -> float:
         return (ros_time - self.start_time) * self.time_scale
 
     def _frame(self) -> None:
-        tick = self._now()
+        tick = clock_seconds(self)
         predicted = float(np.percentile(self._render_s, 90)) + RENDER_MARGIN_S
         stamp_s = tick + min(predicted, self.period)
         scene = scene_at(self.scenario, self.scenario_time(stamp_s))
@@ -203,14 +181,14 @@ class MockCamera(Node):
             messages = self._messages(rgb, depth, scene)
         else:
             messages = self._messages(None, None, scene)
-        ready = self._now()
+        ready = clock_seconds(self)
         self._render_s.append(ready - tick)
         if ready < stamp_s:
             time.sleep(stamp_s - ready)  # never publish a stamp from the future
-        published = self._now()
+        published = clock_seconds(self)
         self._publish(messages, to_stamp(stamp_s))
         self._frames += 1
-        done = self._now()
+        done = clock_seconds(self)
         if done - tick > self.period:
             self._overruns += 1
             self.get_logger().warning(

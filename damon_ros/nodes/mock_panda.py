@@ -39,10 +39,8 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -50,31 +48,39 @@ from damon_ros.core.limits import PROFILES, READY, JointLimits, joint_limits
 from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.ros import topics
 from damon_ros.ros.inputs import joint_names
+from damon_ros.ros.node_loop import start_loop, stop_loop
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import declare
+from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
-from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority
+from damon_ros.ros.stamps import clock_seconds
 from damon_ros.simulation.mock_arm import LATE, LIMIT_KINDS, ArmSim, LimitMonitor
 
 NAME = "mock_panda"
 WARN_EVERY_S = 5.0  # a stream of bad commands of one kind: one line per this many seconds
 
 PARAMETERS = (
-    ("joints", "joint names in command/state order; empty: <joint_prefix>joint1..7"),
-    ("joint_prefix", "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
-    ("limit_profile", f"joint-limit profile the mock arm clamps to: {' | '.join(PROFILES)}"),
-    ("rate_hz", "simulation step and /joint_states rate (Hz)"),
-    ("initial_positions", "start joint positions (rad); ignored when a scenario is given"),
-    ("scenario", "scenario file: start at its start state, obstacles for contact_check"),
-    ("command_timeout_s", "a command older than this stops the joints (s)"),
-    ("actuator_tau_s", "time constant of the first-order joint velocity response (s)"),
-    ("contact_check", "publish exact mesh clearance/contact on /damon/sim/contact"),
-    ("contact_rate_hz", "rounds of the contact check over all obstacles per second (Hz)"),
-    ("scenario_start_time_s", "ROS time (s) of scenario time 0; 0: this node's start"),
-    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
-    ("limit_check", "count commands a real Franka would refuse; 1 Hz on /damon/sim/limits"),
+    Param("joints", (), "joint names in command/state order; empty: <joint_prefix>joint1..7"),
+    Param("joint_prefix", "panda_",
+          "prefix of the default joint names (panda_, or fr3_ for franka_ros2)"),
+    Param("limit_profile", "panda",
+          f"joint-limit profile the mock arm clamps to: {' | '.join(PROFILES)}"),
+    Param("rate_hz", 1000.0, "simulation step and /joint_states rate (Hz)", 1.0, 10000.0),
+    Param("initial_positions", tuple(READY.tolist()),
+          "start joint positions (rad); ignored when a scenario is given"),
+    Param("scenario", "", "scenario file: start at its start state, obstacles for contact_check"),
+    Param("command_timeout_s", 0.1, "a command older than this stops the joints (s)",
+          0.001, 10.0),
+    Param("actuator_tau_s", 0.02,
+          "time constant of the first-order joint velocity response (s)", 0.0001, 1.0),
+    Param("contact_check", False, "publish exact mesh clearance/contact on /damon/sim/contact"),
+    Param("contact_rate_hz", 50.0,
+          "rounds of the contact check over all obstacles per second (Hz)", 0.1, 1000.0),
+    Param("scenario_start_time_s", 0.0, "ROS time (s) of scenario time 0; 0: this node's start"),
+    Param("realtime_priority", 20,
+          "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
+    Param("limit_check", True,
+          "count commands a real Franka would refuse; 1 Hz on /damon/sim/limits"),
 )
-
 
 def start_positions(initial: Sequence[float], scenario: Scenario | None) -> np.ndarray:
     """The scenario's start state when a scenario is given, else ``initial_positions``."""
@@ -146,8 +152,7 @@ class MockPanda(Node):
 
     def __init__(self) -> None:
         super().__init__(NAME)
-        self._declare_parameters()
-        p = self._params
+        p = self._params = declare_all(self, PARAMETERS)
         limits: JointLimits = joint_limits(p["limit_profile"])
         self.names = joint_names(p["joints"], p["joint_prefix"])
         scenario = load_scenario(p["scenario"]) if p["scenario"] else None
@@ -169,39 +174,14 @@ class MockPanda(Node):
         self._limits_pub = (self.create_publisher(DiagnosticArray, topics.SIM_LIMITS, 10)
                             if self._monitor is not None else None)
         self._limits_every = max(1, round(p["rate_hz"]))  # once a second
-        self._loop = FixedRateLoop(p["rate_hz"], self._tick, f"{NAME}_loop",
-                                          on_error=self._on_loop_error)
-        refused = set_realtime_priority(p["realtime_priority"])
-        if refused:
-            self.get_logger().warning(refused)
-        self._loop.start()
+        self._period = 1.0 / p["rate_hz"]  # the loop's, known before its first tick
+        self._loop = start_loop(self, NAME, p["rate_hz"], self._tick, "simulation loop",
+                                p["realtime_priority"])
         source = f"scenario {scenario.name}" if scenario else "initial_positions"
         self.get_logger().info(
             f"{len(self.names)} joints {self.names[0]}..{self.names[-1]}, profile "
             f"{limits.profile}, {p['rate_hz']:g} Hz, start {np.round(q0, 3).tolist()} "
             f"({source})")
-
-    def _declare_parameters(self) -> None:
-        d = declare
-        self._params = {
-            "joints": d(self, "joints", Parameter.Type.STRING_ARRAY, PARAMETERS[0][1]),
-            "joint_prefix": d(self, "joint_prefix", "panda_", PARAMETERS[1][1]),
-            "limit_profile": d(self, "limit_profile", "panda", PARAMETERS[2][1]),
-            "rate_hz": d(self, "rate_hz", 1000.0, PARAMETERS[3][1], low=1.0, high=10000.0),
-            "initial_positions": d(self, "initial_positions", READY.tolist(), PARAMETERS[4][1]),
-            "scenario": d(self, "scenario", "", PARAMETERS[5][1]),
-            "command_timeout_s": d(self, "command_timeout_s", 0.1, PARAMETERS[6][1],
-                                   low=0.001, high=10.0),
-            "actuator_tau_s": d(self, "actuator_tau_s", 0.02, PARAMETERS[7][1],
-                                low=0.0001, high=1.0),
-            "contact_check": d(self, "contact_check", False, PARAMETERS[8][1]),
-            "contact_rate_hz": d(self, "contact_rate_hz", 50.0, PARAMETERS[9][1],
-                                 low=0.1, high=1000.0),
-            "scenario_start_time_s": d(self, "scenario_start_time_s", 0.0, PARAMETERS[10][1]),
-            "realtime_priority": d(self, "realtime_priority", 20, PARAMETERS[11][1],
-                                   low=0, high=99),
-            "limit_check": d(self, "limit_check", True, PARAMETERS[12][1]),
-        }
 
     def _setup_contact_check(self, scenario: Scenario | None) -> None:
         p = self._params
@@ -210,14 +190,11 @@ class MockPanda(Node):
         if scenario is None:
             raise ValueError("parameter contact_check needs a scenario file (parameter scenario)")
         self._contact = ContactMonitor(scenario)
-        start = p["scenario_start_time_s"] or self._ros_now()
+        start = p["scenario_start_time_s"] or clock_seconds(self)
         self._scenario_start = float(start)
         self._contact_pub = self.create_publisher(DiagnosticArray, topics.SIM_CONTACT, 10)
         calls_per_s = p["contact_rate_hz"] * self._contact.calls_per_round
         self._contact_every = max(1, round(p["rate_hz"] / calls_per_s))
-
-    def _ros_now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
 
     # -- executor side
 
@@ -241,7 +218,7 @@ class MockPanda(Node):
     def _tick(self, t: float) -> None:
         # Integrate the real elapsed time; a long stall is capped so that the arm never
         # jumps further than one command timeout's worth of motion in one step.
-        dt = self._loop.period if self._last_step is None else t - self._last_step
+        dt = self._period if self._last_step is None else t - self._last_step
         dt = min(max(dt, 1e-6), self._sim.command_timeout)
         self._last_step = t
         with self._lock:
@@ -265,7 +242,7 @@ class MockPanda(Node):
 
     def _check_contact(self, q: np.ndarray) -> None:
         """One slice of the contact check (see `ContactMonitor`); publish a finished round."""
-        status = self._contact.check_next(q, self._ros_now() - self._scenario_start)
+        status = self._contact.check_next(q, clock_seconds(self) - self._scenario_start)
         if status is None:
             return  # the round goes on
         msg = DiagnosticArray(status=[status])
@@ -306,17 +283,9 @@ class MockPanda(Node):
             self.get_logger().warning(
                 f"no joint command for {self._sim.command_timeout:g} s: stopping the joints")
 
-    def _on_loop_error(self, exc: BaseException) -> None:
-        if not self.context.ok():
-            return  # publishing failed because ROS is shutting down: nothing to report
-        self.get_logger().error(f"simulation loop stopped: {type(exc).__name__}: {exc}")
-
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: stop the loop and report its timing."""
-        self._loop.stop()
-        # ROS may already be shut down (rosout gone): a logger outside the node prints only.
-        log = rclpy.logging.get_logger(f"{NAME}.shutdown")
-        log.info(self._loop.summary())
+        log = stop_loop(self._loop, NAME)
         if self._monitor is not None:
             with self._lock:
                 log.info(self._monitor.summary())

@@ -15,6 +15,7 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Sequence
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -30,47 +31,64 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
+from damon_ros.core.limits import PROFILES
 from damon_ros.ros import topics
 from damon_ros.ros.inputs import JointStateReader, goal_problem, read_joint_state
-from damon_ros.ros.node_main import run_single_threaded
-from damon_ros.ros.parameters import declare, print_help
+from damon_ros.ros.node_loop import use_realtime_priority
+from damon_ros.ros.node_main import node_main
+from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
-from damon_ros.ros.rate_loop import set_realtime_priority
-from damon_ros.ros.stamps import to_stamp
+from damon_ros.ros.stamps import clock_seconds, to_duration, to_stamp
 from damon_ros.ros.topic_reader import TopicReader
 
-PARAMETERS = [
-    ("model_dir", "model directory ('' = the shipped models/default)"),
-    ("joint_prefix", "joint names are <prefix>joint1..7 (panda_ or fr3_)"),
-    ("limit_profile", "joint-limit profile: panda | fr3"),
-    ("base_frame", "frame of goals, obstacles and paths"),
-    ("margin", "λ: clearance (m) required on top of the conservative collision model"),
-    ("resolution", "rad between checked states along a path segment"),
-    ("velocity_scale / acceleration_scale / jerk_scale", "fractions of the limit profile"),
-    ("prediction_horizon_s", "obstacles are swept along their velocity this far ahead"),
-    ("monitor_rate_hz", "fixed-rate re-check of the remaining path"),
-    ("perception_timeout_s", "stop the arm when obstacle data is older (0 = off)"),
-    ("joint_state_timeout_s", "refuse to plan from joint states older than this"),
-    ("time_budget_s", "a route search gives up after this long"),
-    ("realtime_priority", "SCHED_FIFO priority of the node's threads (0 = normal scheduling)"),
-    ("trajectory_topic", "where trajectories go (/fr3_arm_controller/joint_trajectory for "
-                         "franka_ros2's JTC)"),
-]
+NAME = "planner"
+
+PARAMETERS = (
+    Param("model_dir", "", "model directory ('' = the shipped models/default)"),
+    Param("joint_prefix", "panda_", "joint names are <prefix>joint1..7 (panda_ or fr3_)"),
+    Param("limit_profile", "panda", f"joint-limit profile: {' | '.join(PROFILES)}"),
+    Param("base_frame", "panda_link0", "frame of goals, obstacles and paths"),
+    Param("trajectory_topic", topics.JOINT_TRAJECTORY, "where trajectories go "
+          "(/fr3_arm_controller/joint_trajectory for franka_ros2's JTC)"),
+    Param("margin", 0.01,
+          "λ: clearance (m) required on top of the conservative collision model", 0.0, 0.5),
+    Param("resolution", 0.02, "rad between checked states along a path segment", 0.001, 0.1),
+    Param("velocity_scale", 0.9, "fraction of the profile's velocity limits", 0.01, 1.0),
+    Param("acceleration_scale", 0.5, "fraction of the profile's acceleration limits",
+          0.01, 1.0),
+    Param("jerk_scale", 0.5, "fraction of the profile's jerk limits", 0.01, 1.0),
+    Param("prediction_horizon_s", 1.0, "obstacles are swept along their velocity this far "
+          "ahead (s): at least the time a decision takes to reach the arm", 0.0, 5.0),
+    Param("monitor_rate_hz", 20.0, "fixed-rate re-check of the remaining path (Hz)",
+          0.5, 1000.0),
+    Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
+          "(s; 0 = off, for a setup without perception)", 0.0, 60.0),
+    Param("joint_state_period_s", 0.005, "joint states are taken every this many s",
+          0.001, 1.0),
+    Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
+          0.001, 60.0),
+    Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
+    Param("realtime_priority", 15, "SCHED_FIFO priority of the node's threads (0 = normal "
+          "scheduling): above the camera and tracker, below the 1 kHz control loops", 0, 99),
+)
 
 
 class PlannerNode(Node):
     def __init__(self) -> None:
-        super().__init__("planner")
+        super().__init__(NAME)
         from damon_ros.core.limits import joint_limits
         from damon_ros.core.robot import Robot
-        from damon_ros.learning.bundle import DamonModel
+        from damon_ros.learning.bundle import DamonModel, ModelError
         from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
         from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
         from damon_ros.ros.markers import ObstacleTable
 
-        p = self._read_parameters()
+        p = declare_all(self, PARAMETERS)
         self.limits = joint_limits(p["limit_profile"], p["joint_prefix"])
-        self.model = DamonModel.load(p["model_dir"] or None)
+        try:
+            self.model = DamonModel.load(p["model_dir"] or None)
+        except ModelError as exc:  # a ValueError: `node_main` prints it in one line
+            raise ModelError(f"cannot load the model: {exc}") from exc
         self.robot = Robot("fast", p["limit_profile"])
         config = PlannerConfig(margin=p["margin"], resolution=p["resolution"],
                                velocity_scale=p["velocity_scale"],
@@ -120,65 +138,31 @@ class PlannerNode(Node):
         self.create_service(Trigger, topics.STOP_SERVICE, self._on_stop_service)
         self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor)
         self.create_timer(0.1, self._publish_status)
-        refused = set_realtime_priority(p["realtime_priority"])
-        if refused:
-            self.get_logger().warning(refused)
+        use_realtime_priority(self, p["realtime_priority"])
         self.get_logger().info(
             f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
 
-    def _read_parameters(self) -> dict:
-        d = {}
-        for name, default, doc, lo, hi in [
-            ("model_dir", "", "model directory ('' = shipped default)", None, None),
-            ("joint_prefix", "panda_", "joint name prefix", None, None),
-            ("limit_profile", "panda", "panda | fr3", None, None),
-            ("base_frame", "panda_link0", "frame of goals, obstacles and paths", None, None),
-            ("trajectory_topic", topics.JOINT_TRAJECTORY, "trajectory output", None, None),
-            ("margin", 0.01, "clearance λ (m) over the conservative model", 0.0, 0.5),
-            ("resolution", 0.02, "rad between checked states", 0.001, 0.1),
-            ("velocity_scale", 0.9, "fraction of the velocity limits", 0.01, 1.0),
-            ("acceleration_scale", 0.5, "fraction of the acceleration limits", 0.01, 1.0),
-            ("jerk_scale", 0.5, "fraction of the jerk limits", 0.01, 1.0),
-            ("prediction_horizon_s", 1.0, "obstacle sweep horizon (s): at least the time a "
-             "decision takes to reach the arm", 0.0, 5.0),
-            ("monitor_rate_hz", 20.0, "fixed-rate path re-check (Hz)", 0.5, 1000.0),
-            ("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
-             "(0 = off, for a setup without perception)", 0.0, 60.0),
-            ("joint_state_period_s", 0.005, "joint states are taken every this many s", 0.001,
-             1.0),
-            ("joint_state_timeout_s", 0.5, "max joint-state age to plan from (s)", 0.001, 60.0),
-            ("time_budget_s", 0.25, "route search budget (s)", 0.001, 10.0),
-            ("realtime_priority", 15, "SCHED_FIFO priority (0 = normal): above the camera and "
-             "tracker, below the 1 kHz control loops", 0, 99),
-        ]:
-            kwargs = {} if lo is None else {"low": lo, "high": hi}
-            d[name] = declare(self, name, default, doc, **kwargs)
-        return d
-
     # ---- inputs -----------------------------------------------------------------------
-    def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
     def _on_joint_state(self, msg: JointState) -> None:
         q = read_joint_state(self.joint_reader, msg, self.problems, self.get_logger().info)
         if q is None:
             return
         qd = self.joint_reader.velocities(msg)
         with self.lock:
-            self.q, self.qd, self.q_stamp = q, qd, self._now()
+            self.q, self.qd, self.q_stamp = q, qd, clock_seconds(self)
 
     def _current_state(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(positions, velocities or None) of a fresh joint state; (None, None) if stale."""
         with self.lock:
-            if self.q is None or self._now() - self.q_stamp > self.joint_state_timeout:
+            if self.q is None or clock_seconds(self) - self.q_stamp > self.joint_state_timeout:
                 return None, None
             return self.q.copy(), None if self.qd is None else self.qd.copy()
 
     def _perception(self) -> tuple[list, float]:
         """(obstacle shape, velocity) pairs now, and the age of the obstacle data (inf
         before any valid data): what every decision of the runtime takes."""
-        now = self._now()
+        now = clock_seconds(self)
         obstacles = [(o.shape, o.velocity) for o in self.table.obstacles(now)]
         return obstacles, now - self.table.last_update
 
@@ -186,7 +170,7 @@ class PlannerNode(Node):
         if self._obstacles_received is None:
             self._obstacles_received = time.perf_counter()
         with self.deciding:
-            for error in self.table.apply(msg.markers, self._now()):
+            for error in self.table.apply(msg.markers, clock_seconds(self)):
                 self.problems.report(f"obstacle marker refused: {error}")
 
     def _on_obstacles_drained(self) -> None:
@@ -207,7 +191,7 @@ class PlannerNode(Node):
             return None
         q, qd = self._current_state()
         if q is None:
-            age = self._now() - self.q_stamp
+            age = clock_seconds(self) - self.q_stamp
             self.get_logger().error(
                 "goal refused: no fresh joint state (" + (
                     f"the last one is {age:.2f} s old, limit {self.joint_state_timeout:g} s)"
@@ -232,8 +216,8 @@ class PlannerNode(Node):
             return
         with self.deciding:
             obstacles, age = self._perception()
-            event = self.runtime.update(self._now(), q, obstacles, perception_age_s=age,
-                                        qd_now=qd)
+            event = self.runtime.update(clock_seconds(self), q, obstacles,
+                                        perception_age_s=age, qd_now=qd)
             self._act(event, received, "update")
 
     def _act(self, event, received: float, cause: str) -> None:
@@ -271,9 +255,7 @@ class PlannerNode(Node):
                                  traj.accelerations, strict=True):
             point = JointTrajectoryPoint(positions=q.tolist(), velocities=qd.tolist(),
                                          accelerations=qdd.tolist())
-            sec = int(t)
-            point.time_from_start.sec, point.time_from_start.nanosec = sec, int(
-                round((t - sec) * 1e9)) % 1_000_000_000
+            point.time_from_start = to_duration(t, "time_from_start")
             msg.points.append(point)
         self.pub_traj.publish(msg)
         self.pub_path.publish(self._tcp_path(result.path))
@@ -336,12 +318,12 @@ class PlannerNode(Node):
             "collision_probability": f"{rt.last_probability:.3f}",
             "replan_latency_p50_ms": f"{np.median(latencies):.2f}" if latencies else "nan",
             # inf until the first one: a goal sent before then is refused
-            "joint_state_age_s": f"{self._now() - self.q_stamp:.3f}",
-            "obstacle_data_age_s": f"{self._now() - self.table.last_update:.3f}",
+            "joint_state_age_s": f"{clock_seconds(self) - self.q_stamp:.3f}",
+            "obstacle_data_age_s": f"{clock_seconds(self) - self.table.last_update:.3f}",
         }
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
-        msg.header.stamp = to_stamp(self._now())
+        msg.header.stamp = to_stamp(clock_seconds(self))
         self.pub_status.publish(msg)
 
     def on_shutdown(self) -> None:
@@ -367,19 +349,11 @@ class PlannerNode(Node):
         return response
 
 
-def main(args=None) -> int:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print_help("planner", "DAMON latent-graph planner: goal_pose in, certified "
-                   "JointTrajectory out, re-routed on every obstacle threat.", PARAMETERS)
-        return 0
-    from damon_ros.learning.bundle import ModelError
-
-    try:
-        return run_single_threaded(PlannerNode, argv)
-    except ModelError as exc:
-        print(f"planner: cannot load the model: {exc}", file=sys.stderr)
-        return 2
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point (``--help``, one-line errors): see `node_main`."""
+    return node_main(NAME, "DAMON latent-graph planner: goal_pose in, certified "
+                     "JointTrajectory out, re-routed on every obstacle threat.", PARAMETERS,
+                     PlannerNode, args)
 
 
 if __name__ == "__main__":

@@ -56,27 +56,34 @@ from damon_ros.ros.images import (
     decode_depth,
 )
 from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker
+from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
-from damon_ros.ros.parameters import declare
+from damon_ros.ros.parameters import Param, declare_all
 from damon_ros.ros.problems import ProblemLog
-from damon_ros.ros.rate_loop import set_realtime_priority
-from damon_ros.ros.stamps import stamp_seconds
+from damon_ros.ros.stamps import clock_seconds, stamp_seconds
 
 NAME = "tracker"
 LATENCY_HISTORY = 3000
 
 PARAMETERS = (
-    ("tracker_config", "tracker settings (HSV classes, shape model, tracking); "
-                       "'' = config/tracker.yaml"),
-    ("camera_config", "camera file giving base_T_camera and the base frame; '' = shipped "
-                      "config/camera.yaml (intrinsics come from camera_info)"),
-    ("sync_tolerance_s", "colour and depth frames pair when their stamps differ by <= this"),
-    ("queue_size", "unmatched frames held per stream while waiting for the other"),
-    ("marker_lifetime_s", "marker lifetime (s); 0: the tracker's max_age_s"),
-    ("publish_partial", "also publish obstacles seen only in part (image border, occluder)"),
-    ("stats_period_s", "log frame rate and latency every this many seconds; 0: at shutdown"),
-    ("warn_every_s", "a repeated problem (bad image, ...) is logged at most this often"),
-    ("realtime_priority", "SCHED_FIFO priority of the node's threads, 0: normal scheduling"),
+    Param("tracker_config", "", "tracker settings (HSV classes, shape model, tracking); "
+                                "'' = config/tracker.yaml"),
+    Param("camera_config", "", "camera file giving base_T_camera and the base frame; '' = "
+                               "shipped config/camera.yaml (intrinsics come from camera_info)"),
+    Param("sync_tolerance_s", 0.005,
+          "colour and depth frames pair when their stamps differ by <= this", 0.0, 1.0),
+    Param("queue_size", 10, "unmatched frames held per stream while waiting for the other",
+          1, 1000),
+    Param("marker_lifetime_s", 0.0, "marker lifetime (s); 0: the tracker's max_age_s",
+          0.0, 3600.0),
+    Param("publish_partial", True,
+          "also publish obstacles seen only in part (image border, occluder)"),
+    Param("stats_period_s", 10.0,
+          "log frame rate and latency every this many seconds; 0: at shutdown", 0.0, 3600.0),
+    Param("warn_every_s", 10.0,
+          "a repeated problem (bad image, ...) is logged at most this often", 0.0, 3600.0),
+    Param("realtime_priority", 10,
+          "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
 )
 
 
@@ -166,7 +173,7 @@ class TrackerNode(Node):
 
     def __init__(self) -> None:
         super().__init__(NAME)
-        p = self._declare_parameters()
+        p = declare_all(self, PARAMETERS)
         self.config = load_tracker_config(p["tracker_config"] or None)
         self.calibration = load_camera(p["camera_config"] or None)
         self.base_frame = self.calibration.base_frame
@@ -189,32 +196,10 @@ class TrackerNode(Node):
             self._stats_started = time.monotonic()
             self._stats_frames = 0
             self.create_timer(p["stats_period_s"], self._log_stats)
-        refused = set_realtime_priority(p["realtime_priority"])
-        if refused:
-            self.get_logger().warning(refused)
+        use_realtime_priority(self, p["realtime_priority"])
         self.get_logger().info(
             f"tracking {sorted(self.config.colors)} as {self.config.shape}s in "
             f"{self.base_frame} on {topics.OBSTACLES}, marker lifetime {self.lifetime_s:g} s")
-
-    def _declare_parameters(self) -> dict:
-        d = declare
-        doc = dict(PARAMETERS)
-        return {
-            "tracker_config": d(self, "tracker_config", "", doc["tracker_config"]),
-            "camera_config": d(self, "camera_config", "", doc["camera_config"]),
-            "sync_tolerance_s": d(self, "sync_tolerance_s", 0.005, doc["sync_tolerance_s"],
-                                  low=0.0, high=1.0),
-            "queue_size": d(self, "queue_size", 10, doc["queue_size"], low=1, high=1000),
-            "marker_lifetime_s": d(self, "marker_lifetime_s", 0.0, doc["marker_lifetime_s"],
-                                   low=0.0, high=3600.0),
-            "publish_partial": d(self, "publish_partial", True, doc["publish_partial"]),
-            "stats_period_s": d(self, "stats_period_s", 10.0, doc["stats_period_s"],
-                                low=0.0, high=3600.0),
-            "warn_every_s": d(self, "warn_every_s", 10.0, doc["warn_every_s"],
-                              low=0.0, high=3600.0),
-            "realtime_priority": d(self, "realtime_priority", 10, doc["realtime_priority"],
-                                   low=0, high=99),
-        }
 
     # -- callbacks
 
@@ -292,7 +277,7 @@ class TrackerNode(Node):
         markers, self._shown = obstacle_markers(tracks, self._shown, self.base_frame, stamp,
                                                 self.lifetime_s, self.publish_partial)
         self._pub.publish(markers)
-        latency = self.get_clock().now().nanoseconds * 1e-9 - stamp_seconds(stamp)
+        latency = clock_seconds(self) - stamp_seconds(stamp)
         self.stats.add(latency, time.perf_counter() - started)
         self.get_logger().debug(f"{len(tracks)} tracks, latency {latency * 1e3:.2f} ms")
 
@@ -308,14 +293,15 @@ class TrackerNode(Node):
         self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}")
 
 
-EXTRA_HELP = ("ROS parameters with defaults: config/tracker_node.yaml; the tracking settings "
-              "themselves: config/tracker.yaml (parameter tracker_config).")
+CONFIG_FILE = "config/tracker_node.yaml"
+"""The node's parameters file: config/tracker.yaml holds the tracking settings themselves."""
+EXTRA_HELP = "The tracking settings themselves: config/tracker.yaml (parameter tracker_config)."
 
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point (``--help``, one-line errors): see `node_main`."""
     return node_main(NAME, __doc__.split("\n\n")[0], PARAMETERS, TrackerNode, args,
-                            extra_help=EXTRA_HELP)
+                     extra_help=EXTRA_HELP, config_file=CONFIG_FILE)
 
 
 if __name__ == "__main__":

@@ -16,16 +16,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from damon_ros.core.limits import JointLimits
+from damon_ros.core.limits import POSITION_LIMIT_MARGIN, JointLimits
 from damon_ros.planning.trajectory import METHODS, Spline
 
 # Fraction of the acceleration limit used for the braking curve before a position limit; the
 # rest is headroom for the jerk-limited transition into braking and for tracking lag.
 POSITION_BRAKE_FRACTION = 0.5
-POSITION_LIMIT_MARGIN = 0.01
-"""rad: the command brakes to a stop this far inside each position limit. Braking to the
-limit itself let the actuator's lag carry the mock arm onto it (the soak's limit monitor
-counted joint 1 reaching 2.8973 rad); a Franka stops with a reflex there."""
 
 
 def _per_joint(name: str, value, n: int) -> np.ndarray:

@@ -21,8 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from damon_ros.core.limits import READY, JointLimits
-from damon_ros.core.robot import IK_LIMIT_MARGIN
+from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, START_LIMIT_TOLERANCE, JointLimits
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
 
@@ -219,7 +218,7 @@ class GraphPlanner:
         """The margin demanded of a first segment (it leaves the current state): λ, or less
         when an obstacle has already come closer than λ, so that the arm can move away.
         When the obstacle is already inside the fast model's conservative envelope (its
-        distance ≤ 0, while the meshes still have ≥ 4 mm, see robot.FAST_MODEL_MARGIN), the
+        distance ≤ 0, while the meshes still have ≥ 4 mm, see collision.FAST_MODEL_MARGIN), the
         first segment may only move away: no state on it may come any closer."""
         clearance = self.clearance(q, obstacles)
         if clearance > 0.0:
@@ -327,7 +326,7 @@ class GraphPlanner:
     def _check_start(self, q: np.ndarray) -> str:
         if q.shape != (7,) or not np.all(np.isfinite(q)):
             return "start state must be 7 finite joint positions"
-        if not self.limits.within(q, tolerance=1e-3):
+        if not self.limits.within(q, tolerance=START_LIMIT_TOLERANCE):
             return "start state is outside the joint limits"
         return ""
 

@@ -1,11 +1,11 @@
 """OMPL baselines (RRT, RRT*, RRTConnect) behind the planner's own interface.
 
 They subclass :class:`damon_ros.planning.graph_planner.GraphPlanner` and replace only
-the route search, so the runtime loop, goal resolution (the same IK), certification rules (the same conservative
-fast model, margin and first-segment rule), self-collision rule, shortcutting, time
-parameterisation and controller are identical: what differs is how a route is found.
-Re-planning from the current state when the path is threatened (the runtime loop) is the
-honest stand-in for Dynamic RRT*.
+the route search, so the runtime loop, goal resolution (the same IK), certification rules
+(the same conservative fast model, margin and first-segment rule), self-collision rule,
+shortcutting, time parameterisation and controller are identical: what differs is how a
+route is found. Re-planning from the current state when the path is threatened (the runtime
+loop) is the honest stand-in for Dynamic RRT*.
 """
 
 from __future__ import annotations

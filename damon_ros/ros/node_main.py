@@ -10,7 +10,7 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 
 from damon_ros.ros.environment import limit_threads
-from damon_ros.ros.parameters import print_help
+from damon_ros.ros.parameters import Param, print_help
 
 
 def run_single_threaded(
@@ -63,17 +63,21 @@ def _spin(
     return 0
 
 
-def node_main(name: str, description: str, parameters: Sequence[tuple[str, str]],
+def node_main(name: str, description: str, parameters: Sequence[Param],
               node_factory: Callable[[], Node], args: Sequence[str] | None = None,
-              extra_help: str = "", errors: tuple[type[BaseException], ...] = ()) -> int:
+              extra_help: str = "", errors: tuple[type[BaseException], ...] = (),
+              config_file: str | None = None) -> int:
     """A node's console entry point: ``--help`` before any ROS start-up, a one-line error
-    (exit 2) on bad parameters or files, otherwise `run_single_threaded`."""
+    (exit 2) on bad parameters or files, otherwise `run_single_threaded`.
+
+    ``config_file`` names the node's shipped parameters file in the help (default
+    ``config/<name>.yaml``)."""
     from rclpy.exceptions import ParameterException
 
     argv = list(sys.argv if args is None else args)
     own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
     if "--help" in own or "-h" in own:
-        print_help(name, description, parameters)
+        print_help(name, description, parameters, config_file)
         if extra_help:
             print(f"\n{extra_help}")
         return 0

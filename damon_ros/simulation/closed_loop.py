@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from damon_ros.core.kinematics import pose_error
 from damon_ros.core.scenario import Scenario
 from damon_ros.planning.follower import TrajectoryFollower
 from damon_ros.planning.graph_planner import PoseGoal
@@ -100,12 +101,6 @@ class _Perception:
         return out
 
 
-def _tcp_error(robot, q: np.ndarray, goal: PoseGoal) -> tuple[float, float]:
-    position, quat = robot.tcp_pose(q)
-    dot = min(1.0, abs(float(quat @ goal.orientation)))
-    return float(np.linalg.norm(position - goal.position)), 2.0 * math.acos(dot)
-
-
 def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, fast,
                  config: SimConfig | None = None) -> RunRecord:
     """Simulate one scenario with one planner; never raises for a planner failure."""
@@ -174,7 +169,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
         if record.collided:
             break
         if runtime.state in ("executing", "reached") and np.all(np.abs(qd) < config.settle_speed):
-            p_err, o_err = _tcp_error(fast, q, goal)
+            p_err, o_err = pose_error(*fast.tcp_pose(q), goal.position, goal.orientation)
             if p_err <= goal.position_tolerance and o_err <= goal.orientation_tolerance:
                 held_since = t if held_since is None else held_since
                 if t - held_since >= config.hold_time:

@@ -128,7 +128,7 @@ def plots(out: Path, codec, data, rows: list[dict], graph, gmr, margin: float) -
     import matplotlib.pyplot as plt
 
     from damon_ros.learning.gmr import reliability
-    from damon_ros.learning.vae import rows_from
+    from damon_ros.learning.vae_training import rows_from
 
     out.mkdir(parents=True, exist_ok=True)
     files = []
@@ -202,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     from damon_ros.core.resources import public_scenarios_dir
     from damon_ros.core.scenario import ScenarioError, load_scenario, scenario_files
     from damon_ros.learning.bundle import DamonModel, ModelError
-    from damon_ros.learning.collect import load_dataset
+    from damon_ros.learning.dataset import load_dataset
 
     parser = argparse.ArgumentParser(prog="damon-ros analyze",
                                      description="GMR runtime model and the graph-size sweep.")

@@ -4,7 +4,7 @@ The table holds the numbers the planner's latency budget is built from: FK, IK, 
 distance, a batch of fast distances and certified segment checks. ``--margin N`` instead
 measures, on N random configurations each with a random obstacle near the arm, how far the
 un-inflated sphere model's distance can exceed the exact mesh distance — the measurement
-behind :data:`damon_ros.core.robot.FAST_MODEL_MARGIN`.
+behind :data:`damon_ros.core.collision.FAST_MODEL_MARGIN`.
 """
 
 from __future__ import annotations
@@ -17,15 +17,15 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from damon_ros.core.robot import (
+from damon_ros.core.collision import (
     FAST_MODEL_MARGIN,
-    READY,
-    Robot,
     SphereModel,
-    load_arm,
     panda_inflation,
     surface_points,
 )
+from damon_ros.core.kinematics import load_arm
+from damon_ros.core.limits import READY
+from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.core.shapes import Shape
 

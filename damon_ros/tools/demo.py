@@ -10,7 +10,6 @@ contact, so scripts can rely on it. Plots and an animation land in ``--out``.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import tempfile
@@ -207,6 +206,8 @@ def _goal_message(scenario, node):
 def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
             t_goal: float, procs: dict) -> dict:
     """Sample the arm until the goal is held, contact, or the scenario's time limit."""
+    from damon_ros.core.kinematics import pose_error
+
     goal = scenario.goal
     held_since, next_check = None, 0.0
     deadline = start_time + scenario.time_limit
@@ -228,9 +229,7 @@ def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
         rec.clearance.append(d)
         if d <= 0.0:
             return {"collided": True, "reason": f"contact at t = {t:.2f} s"}
-        position, quat = mesh.tcp_pose(q)
-        p_err = float(np.linalg.norm(position - goal.position))
-        o_err = 2 * math.acos(min(1.0, abs(float(quat @ goal.orientation))))
+        p_err, o_err = pose_error(*mesh.tcp_pose(q), goal.position, goal.orientation)
         if p_err <= goal.position_tolerance and o_err <= goal.orientation_tolerance and \
                 float(np.max(np.abs(qd))) < 0.02:
             held_since = held_since or now

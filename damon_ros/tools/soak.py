@@ -661,6 +661,8 @@ class Monitor:
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState
 
+        from damon_ros.core.kinematics import pose_error
+
         if self.joints.raw is None:
             return
         msg = deserialize_message(self.joints.raw, JointState)
@@ -669,9 +671,7 @@ class Monitor:
         if self.goal.reached or self.goal.index < 0 or float(np.max(np.abs(qd))) >= STILL_RAD_S:
             return
         goal = self.goals[self.goal.index % len(self.goals)]
-        position, quat = self.robot.tcp_pose(q)
-        p_err = float(np.linalg.norm(position - np.asarray(goal.position)))
-        o_err = 2.0 * math.acos(min(1.0, abs(float(quat @ np.asarray(goal.orientation)))))
+        p_err, o_err = pose_error(*self.robot.tcp_pose(q), goal.position, goal.orientation)
         if p_err <= goal.position_tolerance and o_err <= goal.orientation_tolerance:
             self.goal.reached = True
             self.goal.reached_count += 1
