@@ -7,8 +7,9 @@ gives: the share of frames whose estimate contains the true object (dense surfac
 of every part inside it — the tracker's safety rule), the median volume excess (estimate
 volume / true volume - 1), the centre error (estimate centre vs the centre of the true
 object's enclosing box), the velocity error, and the tracker's CPU time per frame (one
-process, offline; CPU rather than wall time so that a loaded machine does not inflate it). Frames whose detection is flagged partial (cut off or occluded) are counted
-apart: their bound covers only what is seen.
+process, offline; CPU rather than wall time so that a loaded machine does not inflate it).
+Frames whose detection is flagged partial (cut off or occluded) are counted apart: their
+bound covers only what is seen.
 """
 
 from __future__ import annotations
