@@ -9,10 +9,12 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m ruff check damon_ros test
+	.venv/bin/lint-imports
 	$(PY) -m pytest -q test
 
 lint: $(STAMP)
 	$(PY) -m ruff check damon_ros test
+	.venv/bin/lint-imports
 
 venv: $(STAMP)
 

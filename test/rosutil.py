@@ -9,13 +9,15 @@ same way:
   ports); 0 is left alone because that is where anybody's unconfigured ROS tools live. The
   process id is mixed in because several pytest runs may share this machine at once; with
   ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` nothing from another host can interfere.
-- **Environment.** `node_env` is the caller's environment plus
-  `damon_ros.nodes.ros_environment` (domain, localhost discovery, Fast DDS with the
-  shared-memory profile), unbuffered Python, uncoloured logs, and a ROS log directory under
-  the test's temporary folder instead of ``~/.ros``.
-- **Processes.** `start_node` runs ``python -m damon_ros.nodes.<module> --ros-args ...`` with
-  stdout and stderr in a log file (`read_log` shows it when an assertion fails);
-  `stop_node` sends SIGINT, then SIGTERM, then SIGKILL, each wait bounded.
+- **Environment.** `damon_ros.ros.environment.node_environment`: the caller's environment
+  plus the private graph (domain, localhost discovery, Fast DDS with the shared-memory
+  profile), unbuffered Python, uncoloured logs, and a ROS log directory under the test's
+  temporary folder instead of ``~/.ros``.
+- **Processes.** `start_node` and `stop_node` are those of `damon_ros.ros.launch` (stdout
+  and stderr in a log file, `damon_ros.ros.launch.read_log` shows it when an assertion
+  fails; SIGINT, then SIGTERM, then SIGKILL, each wait bounded), run from this checkout's
+  root and returning the log with the exit code. `assert_starts_with_defaults` and
+  `assert_help_and_bad_parameter` are the start-up checks every node's tests make.
 - **In-process client.** `RosClient` (a context manager) owns an ``rclpy.Context``, a node
   and a single-threaded executor; `RosClient.spin_until` always returns within its timeout.
   It records topics with publisher timestamps and reaches the nodes over UDP only, so
@@ -49,8 +51,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 
-from damon_ros.ros import topics
-from damon_ros.ros.environment import ros_environment
+from damon_ros.ros import launch, topics
+from damon_ros.ros.environment import node_environment, observer_environment
+from damon_ros.ros.launch import read_log
 from damon_ros.ros.rate_loop import set_realtime_priority
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,86 +72,31 @@ def next_domain_id(test_file: str) -> int:
     return DOMAIN_LOW + (base + k) % span
 
 
-def node_env(domain_id: int, log_dir: Path | None = None,
-             base: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Environment for a node process (or this one) on the private graph of ``domain_id``."""
-    env = dict(os.environ if base is None else base)
-    env.update(ros_environment(domain_id))
-    env.update({
-        "PYTHONUNBUFFERED": "1",
-        "RCUTILS_COLORIZED_OUTPUT": "0",
-        "ROS_LOG_DIR": str(log_dir if log_dir is not None else Path(tempfile.gettempdir())),
-    })
-    return env
-
-
-def format_param(value) -> str:
-    """``-p name:=value`` text: YAML that rcl parses back to the same type.
-
-    JSON is YAML, and quoting strings stops "1.0" or "true" from turning into numbers.
-    """
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float, str)):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple)):
-        return json.dumps(list(value))
-    raise ValueError(f"parameter value {value!r} is not a bool, number, string or list")
-
-
 def start_node(module: str, params: Mapping[str, object] | None, env: Mapping[str, str],
                log_path: Path, params_file: Path | None = None,
-               ros_args: Sequence[str] = ()) -> subprocess.Popen:
-    """Start ``damon_ros.nodes.<module>`` in its own process; output goes to ``log_path``.
+               remaps: Mapping[str, str] | None = None) -> subprocess.Popen:
+    """`damon_ros.ros.launch.start_node`, run from this checkout's root.
 
-    Parameters from ``params`` come after ``params_file`` on the command line, so they
-    override it. The returned Popen carries ``log_path`` for `read_log` / `stop_node`.
+    ``python -m`` then imports the damon_ros of this checkout, the one the tests import,
+    even where another copy of the package is installed.
     """
-    cmd = [sys.executable, "-m", f"damon_ros.nodes.{module}", "--ros-args"]
-    if params_file is not None:
-        cmd += ["--params-file", str(params_file)]
-    for name, value in (params or {}).items():
-        cmd += ["-p", f"{name}:={format_param(value)}"]
-    cmd += list(ros_args)
-    log_path = Path(log_path)
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(env), stdout=log,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
-    proc.log_path = log_path
-    return proc
+    return launch.start_node(module, params, env, log_path, remaps=remaps,
+                             params_file=params_file, cwd=ROOT)
 
 
-def read_log(proc: subprocess.Popen) -> str:
-    path = getattr(proc, "log_path", None)
-    if path is None or not Path(path).exists():
-        return ""
-    return Path(path).read_text(errors="replace")
+def stop_node(proc: subprocess.Popen, timeout: float = 5.0,
+              first_signal: int = signal.SIGINT) -> tuple[int, str]:
+    """`damon_ros.ros.launch.stop_node`, then the node's log: (exit code, log text).
+
+    Every test that stops a node asserts on both, and shows the log when the code is wrong.
+    """
+    code = launch.stop_node(proc, timeout=timeout, first_signal=first_signal)
+    return code, read_log(proc)
 
 
 def log_lines(proc: subprocess.Popen, needle: str) -> list[str]:
     """Lines of the node's log that contain ``needle``."""
     return [line for line in read_log(proc).splitlines() if needle in line]
-
-
-def stop_node(proc: subprocess.Popen, timeout: float = 5.0,
-              first_signal: int = signal.SIGINT) -> tuple[int, str]:
-    """Stop a node: ``first_signal``, then SIGTERM, then SIGKILL, each waiting ``timeout``.
-
-    Returns (exit code, log text). A process that ended by itself is just reaped.
-    """
-    for sig in (first_signal, signal.SIGTERM, signal.SIGKILL):
-        if proc.poll() is not None:
-            break
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            continue
-    if proc.poll() is None:
-        proc.wait(timeout=timeout)
-    return proc.returncode, read_log(proc)
 
 
 @dataclass
@@ -193,32 +141,9 @@ class Recorder:
         return list(zip(self.sources[k:], self.messages[k:], strict=True))
 
 
-CLIENT_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors>
-    <transport_descriptor>
-      <transport_id>test_client_udpv4</transport_id>
-      <type>UDPv4</type>
-    </transport_descriptor>
-  </transport_descriptors>
-  <participant profile_name="test_client_udp_only" is_default_profile="true">
-    <rtps>
-      <userTransports><transport_id>test_client_udpv4</transport_id></userTransports>
-      <useBuiltinTransports>false</useBuiltinTransports>
-    </rtps>
-  </participant>
-</profiles>
-"""
-
-
-def client_profile() -> Path:
-    """The Fast DDS profile of the test process (UDP only, see `RosClient`), as a file."""
-    path = Path(tempfile.gettempdir()) / f"damon_test_client_{os.getuid()}.xml"
-    if not path.exists() or path.read_text() != CLIENT_PROFILE:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(CLIENT_PROFILE)
-        tmp.replace(path)  # atomic: concurrent test runs never read half a file
-    return path
+def client_profile_path() -> Path:
+    """Where the test processes keep their UDP-only Fast DDS profile (see `RosClient`)."""
+    return Path(tempfile.gettempdir()) / f"damon_test_client_{os.getuid()}.xml"
 
 
 class RosClient:
@@ -233,7 +158,7 @@ class RosClient:
     of messages pushed this 2-core machine into the kernel's RT throttling, which stopped
     every RT thread, the nodes' included, for up to 300 ms.
 
-    The client itself talks to the nodes over UDP only (`CLIENT_PROFILE`), while the nodes
+    The client itself talks to the nodes over UDP only (`observer_environment`), while the nodes
     use the shared-memory profile among themselves. Fast DDS guards its shared-memory ports
     with mutexes shared between processes, so a CPU-starved normal-priority reader holding
     one stalls a real-time writer: measured here, with a shared-memory client on a loaded
@@ -256,10 +181,9 @@ class RosClient:
 
     def __enter__(self) -> RosClient:
         # The RMW reads these once per process; the domain itself is passed explicitly.
-        for key, value in ros_environment(self.domain_id).items():
+        for key, value in observer_environment(self.domain_id, client_profile_path()).items():
             if key != "ROS_DOMAIN_ID":
                 os.environ[key] = value
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(client_profile())
         self.context = Context()
         # No rclpy signal handlers: Ctrl-C and pytest-timeout must keep working as usual.
         rclpy.init(context=self.context, domain_id=self.domain_id,
@@ -346,6 +270,42 @@ class RosClient:
         return self.spin_until(lambda: self.node.count_publishers(topic) >= count, timeout_s)
 
 
+# ------------------------------------------------------------------ start-up checks
+
+def assert_starts_with_defaults(module: str, topic: str, test_file: str, tmp_path: Path) -> None:
+    """No params file at all: the built-in defaults start ``module``, it publishes ``topic``,
+    and SIGTERM ends it with exit code 0 and no warning or error in its log (a refused
+    real-time priority aside: unprivileged machines refuse SCHED_FIFO)."""
+    domain = next_domain_id(test_file)
+    proc = start_node(module, None, node_environment(domain, tmp_path),
+                      tmp_path / f"{module}.log")
+    try:
+        with RosClient(domain) as ros:
+            assert ros.wait_for_publishers(topic, 1, 20.0), read_log(proc)
+    finally:
+        code, log = stop_node(proc, first_signal=signal.SIGTERM)
+    assert code == 0, log[-4000:]
+    problems = [line for line in log.splitlines()
+                if ("WARN" in line or "ERROR" in line) and "SCHED_FIFO" not in line]
+    assert not problems, log[-4000:]
+
+
+def assert_help_and_bad_parameter(module: str, help_flag: str, help_words: Sequence[str],
+                                  bad_parameter: str, error_words: Sequence[str],
+                                  env: Mapping[str, str]) -> None:
+    """``help_flag`` prints the parameters (``help_words`` among them) and exits 0;
+    ``-p bad_parameter`` exits 2 with ``error_words`` on stderr and no traceback."""
+    cmd = [sys.executable, "-m", f"damon_ros.nodes.{module}"]
+    out = subprocess.run([*cmd, help_flag], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert all(word in out.stdout for word in help_words), out.stdout[-2000:]
+    out = subprocess.run([*cmd, "--ros-args", "-p", bad_parameter], capture_output=True,
+                         text=True, timeout=30, env=dict(env))
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert all(word in out.stderr for word in error_words), out.stderr[-2000:]
+    assert "Traceback" not in out.stderr, out.stderr[-2000:]
+
+
 # ------------------------------------------------------------------ image transport latency
 
 IMAGE_TOPIC = "/damon_test/image"
@@ -409,7 +369,7 @@ def measure_image_latency(domain_id: int, shm_profile: bool, count: int = 60,
     Both ends are child processes because Fast DDS reads its profile once per process.
     ``shm_profile`` False runs them with Fast DDS's built-in transports instead.
     """
-    env = node_env(domain_id)
+    env = node_environment(domain_id)
     if not shm_profile:
         env.pop("FASTRTPS_DEFAULT_PROFILES_FILE")
     me = [sys.executable, str(Path(__file__).resolve())]
@@ -443,10 +403,10 @@ def measure_loop_timing(domain_id: int, seconds: float,
     """Run mock_panda and controller closed loop for ``seconds``; their loop-timing lines.
 
     Both start from their ``config/*.yaml`` (plus ``params`` for both); the lines are what
-    each node logs at shutdown (`damon_ros.nodes.FixedRateLoop.summary`).
+    each node logs at shutdown (`damon_ros.ros.rate_loop.FixedRateLoop.summary`).
     """
     with tempfile.TemporaryDirectory() as tmp:
-        env = node_env(domain_id, Path(tmp))
+        env = node_environment(domain_id, Path(tmp))
         procs = {name: start_node(name, params, env, Path(tmp) / f"{name}.log",
                                   params_file=ROOT / "config" / f"{name}.yaml")
                  for name in ("mock_panda", "controller")}
@@ -468,11 +428,7 @@ def start_heartbeat(env: Mapping[str, str], log_path: Path, rate_hz: float = 20.
     """
     cmd = [sys.executable, str(Path(__file__).resolve()), "_heartbeat", "--rate", str(rate_hz),
            "--topic", topic]
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(cmd, env=dict(env), stdout=log, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
-    proc.log_path = Path(log_path)
-    return proc
+    return launch.start_process(cmd, env, log_path)
 
 
 def _heartbeat(rate_hz: float, topic: str) -> int:
@@ -480,6 +436,7 @@ def _heartbeat(rate_hz: float, topic: str) -> int:
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from rclpy.executors import ExternalShutdownException
 
+    launch.exit_with_parent()
     rclpy.init()
     node = rclpy.create_node("fake_planner")
     pub = node.create_publisher(DiagnosticArray, topic, 10)

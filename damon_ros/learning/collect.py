@@ -84,6 +84,11 @@ MAX_BATCHES = 50  # candidate batches for one sample before giving up (never rea
 OCCUPIED_PROBES = 32  # random configurations that decide a node is always occupied
 
 
+LABELLER_VERSION = 2
+"""Part of every chunk's fingerprint. 2: the collector's kinematics became
+`core.kinematics.Chain` (joint angles of the closed-form aim differ from version 1 by up to
+1.5e-8 rad), so a run resumed across that change does not mix the two kinds of chunk."""
+
 @dataclass(frozen=True)
 class CollectConfig:
     """Every parameter that changes the data (the sample count only decides how many chunks)."""
@@ -114,8 +119,8 @@ class CollectConfig:
 
     def fingerprint(self) -> str:
         """Short hash of the parameters, stored in every chunk so a resumed run never mixes
-        chunks made with different parameters."""
-        text = json.dumps(asdict(self), sort_keys=True)
+        chunks made with different parameters or a different labeller."""
+        text = json.dumps(dict(asdict(self), labeller=LABELLER_VERSION), sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

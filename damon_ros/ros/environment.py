@@ -1,11 +1,18 @@
 """The process environment of a damon_ros setup: one DDS domain, localhost discovery, SHM.
 
-Also the thread limits every node process applies at start (see `limit_threads`).
+Owns every environment variable a damon_ros process is started with: the ROS graph
+(`ros_environment`), the extras of a node process started by the demo, the soak run or the
+tests (`node_environment`), the UDP-only Fast DDS profile of an in-process observer
+(`write_udp_only_profile`, `observer_environment`), and the thread limits every node process
+applies at start (`limit_threads`).
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
 
 from damon_ros.core.resources import config_dir
 
@@ -32,6 +39,69 @@ def ros_environment(domain_id: int) -> dict[str, str]:
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
         "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile),
     }
+
+
+def node_environment(domain_id: int, log_dir: str | Path | None = None,
+                     base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The whole environment of a node process on the private graph of ``domain_id``.
+
+    ``base`` (default: this process's environment) plus `ros_environment`, unbuffered Python
+    and uncoloured ROS logs (the output goes to a log file that is read back and searched),
+    and ``ROS_LOG_DIR`` at ``log_dir`` (default: the temporary folder) instead of ``~/.ros``.
+    """
+    env = dict(os.environ if base is None else base)
+    env.update(ros_environment(domain_id))
+    env.update({
+        "PYTHONUNBUFFERED": "1",
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+        "ROS_LOG_DIR": str(log_dir if log_dir is not None else Path(tempfile.gettempdir())),
+    })
+    return env
+
+
+UDP_ONLY_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>damon_observer_udpv4</transport_id>
+      <type>UDPv4</type>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="damon_observer_udp_only" is_default_profile="true">
+    <rtps>
+      <userTransports><transport_id>damon_observer_udpv4</transport_id></userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def write_udp_only_profile(path: str | Path) -> Path:
+    """Write the UDP-only Fast DDS profile of an observer to ``path``; its absolute path.
+
+    Why an observer (the soak monitor, the test client) must not use shared memory: Fast
+    DDS guards each shared-memory port with a mutex shared between processes, so a
+    CPU-starved normal-priority reader of the real-time nodes' 1 kHz topics can hold one and
+    stall them (measured: ~50 ms stalls about once a second; over UDP none). An observer
+    must not disturb what it observes. The file is replaced atomically and only when its
+    text differs, so concurrent runs sharing one path never read half a file.
+    """
+    path = Path(path).resolve()
+    if not path.is_file() or path.read_text() != UDP_ONLY_PROFILE:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(UDP_ONLY_PROFILE)
+        tmp.replace(path)
+    return path
+
+
+def observer_environment(domain_id: int, profile_path: str | Path) -> dict[str, str]:
+    """`ros_environment` of ``domain_id``, but UDP only (the profile written to
+    ``profile_path``, see `write_udp_only_profile`): for a process that watches the nodes."""
+    env = ros_environment(domain_id)
+    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(write_udp_only_profile(profile_path))
+    return env
 
 
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")

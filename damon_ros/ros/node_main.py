@@ -10,6 +10,7 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 
 from damon_ros.ros.environment import limit_threads
+from damon_ros.ros.launch import exit_with_parent
 from damon_ros.ros.parameters import Param, print_help
 
 
@@ -82,6 +83,7 @@ def node_main(name: str, description: str, parameters: Sequence[Param],
             print(f"\n{extra_help}")
         return 0
     limit_threads()
+    exit_with_parent()
     try:
         return run_single_threaded(node_factory, argv)
     except (ValueError, OSError, ParameterException, *errors) as exc:

@@ -5,7 +5,7 @@ default, description and range in one place. `declare_all` declares them on the 
 descriptor, so ``ros2 param describe`` shows the text and rclpy enforces the range) and
 returns their values; `print_help` prints the same table before any ROS start-up. The
 ``config/<node>.yaml`` files repeat the defaults for users to copy and edit;
-``test/test_parameters.py`` keeps them equal to the tables.
+``test/ros/test_parameters.py`` keeps them equal to the tables.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from damon_ros.ros import topics
-from damon_ros.ros.environment import ros_environment
+from damon_ros.ros.environment import node_environment, ros_environment
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
@@ -84,9 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
     from damon_ros.ros.launch import read_log, start_node, stop_node
 
-    env = dict(os.environ, PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0",
-               ROS_LOG_DIR=str(Path(tempfile.gettempdir()) / "damon_demo_ros_logs"))
-    env.update(ros_environment(domain))
+    env = node_environment(domain, Path(tempfile.gettempdir()) / "damon_demo_ros_logs")
     os.environ.update(ros_environment(domain))  # the demo's own rclpy joins the same graph
     start_time = time.time() + args.startup_s
     common = {"scenario": str(path.resolve()), "scenario_start_time_s": start_time}

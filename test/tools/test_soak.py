@@ -15,7 +15,8 @@ import numpy as np
 from rosutil import next_domain_id
 
 from damon_ros.tools import soak
-from damon_ros.tools.soak import NODES, verdict
+from damon_ros.tools.soak_monitor import cdr_stamp
+from damon_ros.tools.soak_report import LIMIT_KEYS, NODES, verdict
 
 
 def test_short_soak_passes_with_goals_reached_and_every_node_measured(tmp_path, capsys):
@@ -42,7 +43,7 @@ def test_short_soak_passes_with_goals_reached_and_every_node_measured(tmp_path, 
 
 
 def _row(p99: float, rss: float, contacts: int = 0, acceleration: int = 0) -> dict:
-    limits = dict.fromkeys(soak.LIMIT_KEYS, 0) | {"q_outside": 0, "acceleration": acceleration}
+    limits = dict.fromkeys(LIMIT_KEYS, 0) | {"q_outside": 0, "acceleration": acceleration}
     return {"contacts": contacts, "min_clearance_m": 0.05, "limits": limits,
             "goals_sent": 10, "goals_reached": 9,
             "reroute_after_input_ms": {"p99": p99, "n": 100},
@@ -89,4 +90,4 @@ def test_cdr_stamp_reads_the_header_of_a_serialised_message():
 
     msg = JointState(name=["a"], position=[1.0])
     msg.header.stamp.sec, msg.header.stamp.nanosec = 1234, 500_000_000
-    assert soak._cdr_stamp(serialize_message(msg)) == 1234.5
+    assert cdr_stamp(serialize_message(msg)) == 1234.5

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from damon_ros.core.limits import joint_limits
 from damon_ros.ros import topics
+from damon_ros.ros.environment import node_environment
+from damon_ros.ros.launch import read_log
 
 CONFIG = rosutil.ROOT / "config"
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
@@ -52,7 +53,7 @@ def trajectory(times, positions, velocities=None, names=NAMES) -> JointTrajector
 
 
 def _log(proc: subprocess.Popen, name: str) -> str:
-    return f"\n--- {name} log ---\n" + rosutil.read_log(proc)[-4000:]
+    return f"\n--- {name} log ---\n" + read_log(proc)[-4000:]
 
 
 @dataclass
@@ -120,7 +121,7 @@ def _start_arm(ros: rosutil.RosClient, env: dict, tmp: Path) -> Arm:
 def arm(tmp_path_factory):
     domain = rosutil.next_domain_id(__file__)
     tmp = tmp_path_factory.mktemp("closed_loop")
-    env = rosutil.node_env(domain, tmp)
+    env = node_environment(domain, tmp)
     procs = []
     try:
         with rosutil.RosClient(domain) as ros:
@@ -196,7 +197,7 @@ def test_follows_a_trajectory_to_the_goal_and_holds(arm: Arm):
     assert u.shape[1] == 7
     assert np.all(np.abs(u) <= LIMITS.velocity + 1e-9)
     assert np.max(np.abs(u)) > 0.2  # it did move by commanding velocities
-    assert "accepted trajectory" in rosutil.read_log(arm.controller)
+    assert "accepted trajectory" in read_log(arm.controller)
 
 
 EXPECTED = {"unknown joint": "panda_joint8", "duplicate joint": "repeat",
@@ -255,7 +256,7 @@ def test_empty_trajectory_stops_and_holds(arm: Arm):
     assert q0[0] + 0.02 < q_stop[0] < goal[0] - 0.1  # stopped on the way
     arm.ros.spin_for(0.5)
     assert np.max(np.abs(arm.q() - q_stop)) < 1e-3  # and holds there
-    assert "empty trajectory" in rosutil.read_log(arm.controller)
+    assert "empty trajectory" in read_log(arm.controller)
 
 
 def _last_before_silence(ros: rosutil.RosClient, recorder: rosutil.Recorder,
@@ -356,7 +357,7 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
     assert braking < to_zero < braking + 0.05, to_zero
     assert len(rosutil.log_lines(arm.controller, "joint states stale")) == lines + 1
     assert arm.ros.spin_until(
-        lambda: "joint states are back" in rosutil.read_log(arm.controller), 3.0)
+        lambda: "joint states are back" in read_log(arm.controller), 3.0)
     assert arm.settle()
     q_hold = arm.q()
     arm.ros.spin_for(0.3)
@@ -365,29 +366,11 @@ def test_stale_joint_states_brake_the_commands_to_zero(arm: Arm):
 
 def test_runs_with_its_defaults(tmp_path: Path):
     """No params file at all: the built-in defaults start the node; SIGTERM ends it."""
-    domain = rosutil.next_domain_id(__file__)
-    proc = rosutil.start_node("controller", None, rosutil.node_env(domain, tmp_path),
-                              tmp_path / "controller.log")
-    try:
-        with rosutil.RosClient(domain) as ros:
-            assert ros.wait_for_publishers(topics.JOINT_COMMANDS, 1, 20.0), rosutil.read_log(proc)
-    finally:
-        code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
-    assert code == 0, log[-4000:]
-    problems = [line for line in log.splitlines()  # a refused RT priority is no problem
-                if ("WARN" in line or "ERROR" in line) and "SCHED_FIFO" not in line]
-    assert not problems, log[-4000:]
+    rosutil.assert_starts_with_defaults("controller", topics.JOINT_COMMANDS, __file__, tmp_path)
 
 
 def test_help_and_bad_parameters(tmp_path: Path):
-    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.controller", "-h"],
-                         capture_output=True, text=True, timeout=30)
-    assert out.returncode == 0
-    assert "joint_state_timeout_s" in out.stdout and "i_clamp" in out.stdout
-    env = rosutil.node_env(rosutil.next_domain_id(__file__), tmp_path)
-    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.controller", "--ros-args",
-                          "-p", "interpolation:=bspline"], capture_output=True, text=True,
-                         timeout=30, env=env)
-    assert out.returncode == 2
-    assert "interpolation" in out.stderr and "bspline" in out.stderr
-    assert "Traceback" not in out.stderr
+    env = node_environment(rosutil.next_domain_id(__file__), tmp_path)
+    rosutil.assert_help_and_bad_parameter(
+        "controller", "-h", ("joint_state_timeout_s", "i_clamp"), "interpolation:=bspline",
+        ("interpolation", "bspline"), env)

@@ -16,6 +16,7 @@ import rosutil
 
 from damon_ros.core.resources import default_model_dir, sha256
 from damon_ros.learning.bundle import FILES, DamonModel, ModelError
+from damon_ros.ros.environment import node_environment
 
 
 @pytest.fixture
@@ -103,7 +104,7 @@ def test_a_pickle_in_a_model_file_is_refused_even_with_a_matching_hash(model_cop
 
 def test_the_planner_node_exits_with_one_line_on_a_damaged_model(model_copy, tmp_path):
     _flip_a_byte(model_copy)
-    env = rosutil.node_env(rosutil.next_domain_id(__file__), tmp_path)
+    env = node_environment(rosutil.next_domain_id(__file__), tmp_path)
     proc = subprocess.run(
         [sys.executable, "-m", "damon_ros.nodes.planner", "--ros-args", "-p",
          f"model_dir:={model_copy}"], capture_output=True, text=True, timeout=60, env=env)

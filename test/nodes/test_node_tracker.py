@@ -24,8 +24,6 @@ from rosutil import (
     RosClient,
     log_lines,
     next_domain_id,
-    node_env,
-    read_log,
     start_node,
     stop_node,
 )
@@ -39,6 +37,8 @@ from damon_ros.nodes import mock_camera, tracker
 from damon_ros.perception.camera import load_camera
 from damon_ros.perception.tracking import Track
 from damon_ros.ros import topics
+from damon_ros.ros.environment import node_environment
+from damon_ros.ros.launch import read_log
 from damon_ros.ros.markers import ObstacleTable
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import stamp_seconds, to_stamp
@@ -78,7 +78,7 @@ def graph(tmp_path: Path, scenario: str, camera_params: dict | None = None):
     start, so discovery runs while they import.
     """
     domain = next_domain_id(__file__)
-    env = node_env(domain, tmp_path)
+    env = node_environment(domain, tmp_path)
     procs = []
     try:
         with RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
@@ -215,7 +215,7 @@ def test_dropped_tracks_get_a_delete_marker_and_partial_ones_are_optional():
 
 
 def test_mock_camera_exits_with_a_clear_error_on_a_missing_or_bad_scenario(tmp_path):
-    env = node_env(next_domain_id(__file__), tmp_path)
+    env = node_environment(next_domain_id(__file__), tmp_path)
     bad = tmp_path / "bad.yaml"
     bad.write_text("format: 1\nname: bad\n")
     procs = [start_node("mock_camera", {}, env, tmp_path / "none.log"),
@@ -319,7 +319,7 @@ def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
     domain = next_domain_id(__file__)
     camera = load_camera()
     rgb, depth = render(camera, scene_at(load_scenario(SCENARIOS / "B-001.yaml"), 0.0))
-    trk = start_node("tracker", {"stats_period_s": 0.0}, node_env(domain, tmp_path),
+    trk = start_node("tracker", {"stats_period_s": 0.0}, node_environment(domain, tmp_path),
                      tmp_path / "tracker.log")
     try:
         with RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:

@@ -16,7 +16,7 @@ import yaml
 from damon_ros.nodes import controller, mock_camera, mock_panda, planner, tracker
 from damon_ros.ros.parameters import Param
 
-CONFIG = Path(__file__).resolve().parents[1] / "config"
+CONFIG = Path(__file__).resolve().parents[2] / "config"
 
 NODES = {  # node module -> its shipped parameters file, as the tests and the docs start it
     controller: "controller.yaml",

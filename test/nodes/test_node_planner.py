@@ -35,6 +35,8 @@ from damon_ros.core.limits import READY
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
 from damon_ros.ros import topics
+from damon_ros.ros.environment import node_environment
+from damon_ros.ros.launch import read_log
 from damon_ros.ros.markers import shape_to_marker
 
 CONFIG = rosutil.ROOT / "config"
@@ -124,7 +126,7 @@ class Cell:
         return all(p.poll() is None for p in self.procs.values())
 
     def logs(self) -> str:
-        return "".join(f"\n--- {n} log ---\n{rosutil.read_log(p)[-3000:]}"
+        return "".join(f"\n--- {n} log ---\n{read_log(p)[-3000:]}"
                        for n, p in self.procs.items())
 
 
@@ -145,7 +147,7 @@ def planner_ready(cell: Cell, timeout_s: float = 60.0) -> bool:
 def cell(tmp_path_factory):
     domain = rosutil.next_domain_id(__file__)
     tmp = tmp_path_factory.mktemp("planner_cell")
-    env = rosutil.node_env(domain, tmp)
+    env = node_environment(domain, tmp)
     procs: dict[str, subprocess.Popen] = {}
     try:
         with rosutil.RosClient(domain) as ros:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +26,8 @@ from std_msgs.msg import Float64MultiArray
 from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.scenario import load_scenario
 from damon_ros.ros import topics
+from damon_ros.ros.environment import node_environment
+from damon_ros.ros.launch import read_log
 
 CONFIG = rosutil.ROOT / "config" / "mock_panda.yaml"
 SCENARIO = Path("/work/shared/scenarios/A-001.yaml")
@@ -69,14 +70,14 @@ class Graph:
 
 
 def _failure(proc: subprocess.Popen) -> str:
-    return "\n--- mock_panda log ---\n" + rosutil.read_log(proc)[-4000:]
+    return "\n--- mock_panda log ---\n" + read_log(proc)[-4000:]
 
 
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     domain = rosutil.next_domain_id(__file__)
     tmp = tmp_path_factory.mktemp("mock_panda")
-    env = rosutil.node_env(domain, tmp)
+    env = node_environment(domain, tmp)
     proc = rosutil.start_node("mock_panda", None, env, tmp / "mock_panda.log",
                               params_file=CONFIG)
     try:
@@ -230,7 +231,7 @@ def test_scenario_start_and_contact_report(tmp_path: Path):
     path, start = _contact_scenario(tmp_path)
     scenario = load_scenario(path)
     domain = rosutil.next_domain_id(__file__)
-    env = rosutil.node_env(domain, tmp_path)
+    env = node_environment(domain, tmp_path)
     proc = rosutil.start_node("mock_panda", {"scenario": str(path), "contact_check": True,
                                              "contact_rate_hz": 20.0},
                               env, tmp_path / "mock_panda.log", params_file=CONFIG)
@@ -272,29 +273,11 @@ def test_shared_memory_profile_carries_camera_images():
 
 def test_runs_with_its_defaults(tmp_path: Path):
     """No params file at all: the built-in defaults start the node; SIGTERM ends it."""
-    domain = rosutil.next_domain_id(__file__)
-    proc = rosutil.start_node("mock_panda", None, rosutil.node_env(domain, tmp_path),
-                              tmp_path / "mock_panda.log")
-    try:
-        with rosutil.RosClient(domain) as ros:
-            assert ros.wait_for_publishers(topics.JOINT_STATES, 1, 20.0), rosutil.read_log(proc)
-    finally:
-        code, log = rosutil.stop_node(proc, first_signal=signal.SIGTERM)
-    assert code == 0, log[-4000:]
-    problems = [line for line in log.splitlines()  # a refused RT priority is no problem
-                if ("WARN" in line or "ERROR" in line) and "SCHED_FIFO" not in line]
-    assert not problems, log[-4000:]
+    rosutil.assert_starts_with_defaults("mock_panda", topics.JOINT_STATES, __file__, tmp_path)
 
 
 def test_help_and_bad_parameters():
-    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.mock_panda", "--help"],
-                         capture_output=True, text=True, timeout=30)
-    assert out.returncode == 0
-    assert "command_timeout_s" in out.stdout and "rate_hz" in out.stdout
-    env = rosutil.node_env(rosutil.next_domain_id(__file__))
-    out = subprocess.run([sys.executable, "-m", "damon_ros.nodes.mock_panda", "--ros-args",
-                          "-p", "limit_profile:=ur5"], capture_output=True, text=True,
-                         timeout=30, env=env)
-    assert out.returncode == 2
-    assert "limit profile" in out.stderr and "ur5" in out.stderr
-    assert "Traceback" not in out.stderr
+    env = node_environment(rosutil.next_domain_id(__file__))
+    rosutil.assert_help_and_bad_parameter(
+        "mock_panda", "--help", ("command_timeout_s", "rate_hz"), "limit_profile:=ur5",
+        ("limit profile", "ur5"), env)

@@ -78,7 +78,7 @@ def test_shipped_camera_is_a_d435_colour_stream_looking_at_the_workspace():
 
 def test_config_lookup_prefers_the_source_checkout():
     path = config_file("camera.yaml")
-    assert path == Path(__file__).resolve().parents[1] / "config" / "camera.yaml"
+    assert path == Path(__file__).resolve().parents[2] / "config" / "camera.yaml"
     with pytest.raises(FileNotFoundError, match="no-such.yaml"):
         config_file("no-such.yaml")
 
