@@ -41,6 +41,11 @@ BOX_SHARE = 0.92
 YAW_ERROR_RAD = 0.006
 """Residual yaw error after the face fit (about a third of a degree, several times what depth
 noise leaves on a face of a few hundred points)."""
+YAW_NOISE_M = 0.0025
+"""Depth noise on a face turns into a yaw error of about this over the face's width."""
+MAX_YAW_ERROR_RAD = 0.06
+MIN_FACING = 0.1
+"""A face counts as seen only when the camera is at least this sine of an angle off its plane."""
 MAX_OBLIQUITY = 4.0
 """An edge seen on a face at grazing incidence is stretched at most this much (cap)."""
 OCTAHEDRON = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
@@ -58,14 +63,15 @@ class BoxFit(NamedTuple):
 
 
 def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
-              yaw: float) -> float:
+              yaw: float) -> tuple[float, float]:
     """The yaw of the best-populated vertical face, by a total-least-squares line through its
-    points seen from above (``yaw`` itself when no face has enough points)."""
+    points seen from above (``yaw`` itself when no face has enough points), and the face's
+    width (the yaw of a narrow face is uncertain)."""
     counts = [near_low[:, 0].sum(), near_high[:, 0].sum(), near_low[:, 1].sum(),
               near_high[:, 1].sum()]
     best = int(np.argmax(counts))
     if counts[best] < 10:
-        return yaw
+        return yaw, 0.0
     mask = (near_low if best % 2 == 0 else near_high)[:, best // 2]
     only = mask & ~(near_low[:, 2] | near_high[:, 2])  # not the top or bottom face
     xy = points[only if only.sum() >= 10 else mask, :2]
@@ -75,7 +81,8 @@ def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     face_axis = best // 2  # the face is across this box axis: its normal is that axis
     angle = math.atan2(normal[1], normal[0]) - (0.0 if face_axis == 0 else 0.5 * math.pi)
     # the same axes modulo a quarter turn, nearest the rectangle's estimate
-    return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi
+    width = float(np.ptp(xy @ vt[0]))
+    return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
 
 
 def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
@@ -102,16 +109,19 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
         near_low = np.abs(local - robust_low) <= tol
         near_high = np.abs(local - robust_high) <= tol
         if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
-            yaw = _face_yaw(points, near_low, near_high, yaw)
+            yaw, face_width = _face_yaw(points, near_low, near_high, yaw)
     low, high = local.min(axis=0), local.max(axis=0)
     on_face = (near_low | near_high).any(axis=1)
     if on_face.mean() < BOX_SHARE:
         return None
     eye = camera.position @ axes
     need = max(8, int(FACE_SHARE * len(points)))
-    # visible[k, 0] / [k, 1]: the face at low / high of axis k faces the camera and has points
-    visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k],
-                         near_high[:, k].sum() >= need and eye[k] > high[k]] for k in range(3)])
+    # visible[k, 0] / [k, 1]: the face at low / high of axis k faces the camera (by more than
+    # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
+    reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
+    visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k] - reach,
+                         near_high[:, k].sum() >= need and eye[k] > high[k] + reach]
+                        for k in range(3)])
     if not visible.any():
         return None
     centre_depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
@@ -122,12 +132,8 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     margin_face = config.surface_margin_m
     seen, hidden = [], []
     lo, hi = low.copy(), high.copy()
-    # The hidden corners move with the residual yaw error (YAW_ERROR_RAD) times the extent.
-    skew = YAW_ERROR_RAD * (high - low)[[1, 0]]
+    error = min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(face_width, 1e-3)), MAX_YAW_ERROR_RAD)
     for k in range(3):
-        if k < 2:
-            lo[k] -= skew[k]
-            hi[k] += skew[k]
         others = [j for j in range(3) if j != k and visible[j].any()]
         if others:
             best = max(cosines[j] for j in others)
@@ -151,6 +157,10 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
             return None
         seen.append(False)
         hidden.append(extra)
+    # The corners far along one horizontal axis move across the other by the yaw error.
+    skew = error * (hi - lo)[[1, 0]]
+    lo[:2] -= skew
+    hi[:2] += skew
     centre = axes @ (0.5 * (lo + hi))
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)

@@ -28,6 +28,7 @@ from scipy.optimize import linear_sum_assignment
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
+from damon_ros.perception.fusion import fuse
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
 from damon_ros.perception.stationarity import Stationarity
@@ -191,6 +192,30 @@ class Tracker:
         check_images(self.camera, rgb, depth)
         self._check_stamp(stamp_s)
         self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter)
+        return self._track(stamp_s)
+
+    def update_views(self, cameras: Sequence[Camera], frames: Sequence[tuple[np.ndarray,
+                     np.ndarray]], stamp_s: float) -> list[Track]:
+        """Process one synchronised frame of each camera (``frames[c]`` = ``(rgb, depth)`` of
+        ``cameras[c]``): detections are fused across views (:mod:`fusion`), then tracked."""
+        if len(cameras) != len(frames) or not cameras:
+            raise ValueError(f"{len(frames)} frames for {len(cameras)} cameras")
+        stamp_s = float(stamp_s)
+        for camera, (rgb, depth) in zip(cameras, frames, strict=True):
+            check_images(camera, rgb, depth)
+        self._check_stamp(stamp_s)
+        views = [detect(c, self.config, rgb, depth, self.segmenter)
+                 for c, (rgb, depth) in zip(cameras, frames, strict=True)]
+        self.detections = []
+        for color in sorted({d.color for view in views for d in view}):
+            per_view = [[(d.shape, d.partial) for d in view if d.color == color]
+                        for view in views]
+            for shape, partial in fuse(per_view, self.config.gate_m):
+                self.detections.append(Detection(color, shape, shape.kind == "sphere",
+                                                 partial, 0, 0))
+        return self._track(stamp_s)
+
+    def _track(self, stamp_s: float) -> list[Track]:
         for color in {d.color for d in self.detections} | {t.color for t in self._tracks}:
             self._associate(color, [d for d in self.detections if d.color == color], stamp_s)
         self._tracks = [t for t in self._tracks

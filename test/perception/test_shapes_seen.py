@@ -186,3 +186,44 @@ def test_a_still_box_has_zero_velocity_and_a_moved_one_moves_again():
     assert still and all(v == 0.0 for v in still)  # exactly zero, not small
     moving = [v for t, v in speeds.items() if t >= 2.5]
     assert moving and all(v > 0.15 for v in moving)  # truth: 0.3 m/s
+
+
+# --- several cameras --------------------------------------------------------------------------
+
+
+def _look_at(eye, target):
+    """A camera at ``eye`` (base frame) looking at ``target``, with the shipped intrinsics."""
+    from scipy.spatial.transform import Rotation
+
+    from damon_ros.perception.camera import Camera, pose_matrix
+
+    eye, target = np.asarray(eye, dtype=float), np.asarray(target, dtype=float)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    q = Rotation.from_matrix(np.column_stack([x, y, z])).as_quat()
+    return Camera(CAMERA.width, CAMERA.height, CAMERA.K, pose_matrix(eye, q))
+
+
+def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
+    """Seen level from the front only its face shows (depth = the prior); a second camera
+    from the side sees that depth, and the fused bound is tight and still contains it."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.9], "orientation": [0, 0, 0, 1]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])  # level: the top face does not show
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    rng = np.random.default_rng(0)
+    frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (front, side)]
+    one = Tracker(front, CONFIG).update(*frames[0], 0.0)
+    two = Tracker(front, CONFIG).update_views([front, side], frames, 0.0)
+    assert len(one) == 1 and len(two) == 1
+    for track in (one[0], two[0]):
+        assert _inside(track.shape, [truth]) == 1.0
+    depth_one = np.ptp(shapes.enclosing_vertices(one[0].shape)[:, 0])
+    depth_two = np.ptp(shapes.enclosing_vertices(two[0].shape)[:, 0])
+    assert depth_one >= CONFIG.max_thickness_m["box"]  # the prior bounds what is unseen
+    assert depth_two < 0.06 + 0.04 < depth_one
+    assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
