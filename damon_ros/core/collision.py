@@ -32,7 +32,7 @@ import pinocchio as pin
 
 from damon_ros.core import sphere_kernels
 from damon_ros.core.kinematics import Chain, description_dir, load_arm
-from damon_ros.core.shapes import Shape
+from damon_ros.core.shapes import Shape, points_box
 
 SPHERE_SPACING = 0.04
 """Largest gap (m) between the spheres that cover one cylinder of the fast model; each such
@@ -128,10 +128,12 @@ def obstacle_geometry(shape: Shape) -> tuple[coal.CollisionGeometry, coal.Transf
 class Sdf:
     """Signed distance from a batch of points, laid out (3, M) as x, y, z rows, to one
     obstacle (negative inside). As in :mod:`damon_ros.core.sphere_kernels`, a point set counts as
-    its bounding sphere about its mean (which contains its hull, so distances to it never
-    exceed the true ones) and a single point exactly."""
+    its principal-axes box or its bounding sphere about its mean, whichever is smaller
+    (:func:`~damon_ros.core.shapes.points_box`; both contain its hull, so distances to it
+    never exceed the true ones) and a single point exactly."""
 
     def __init__(self, shape: Shape) -> None:
+        shape = points_box(shape) or shape  # as the kernels do: the smaller bound of a set
         rot = shape.rotation()
         self.kind, center = shape.kind, shape.position
         if shape.kind == "points":

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from damon_ros.core.resources import public_scenarios_dir
-from damon_ros.core.shapes import SIZE_LENGTH, Shape
+from damon_ros.core.shapes import SIZE_LENGTH, Shape, compose, enclosing_vertices
 
 FORMAT_VERSION = 1
 COLORS = ("red", "green", "blue", "yellow")
@@ -32,7 +32,8 @@ COLOR_RGB = {
 Lambertian shading only scales RGB, which keeps hue and saturation and lowers value, so a
 shaded pixel stays inside its HSV class."""
 
-SHAPES = ("box", "sphere", "cylinder")
+SHAPES = ("box", "sphere", "cylinder", "compound")
+PART_SHAPES = ("box", "sphere", "cylinder")
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]+$")
 BASE_FRAMES = ("panda_link0", "fr3_link0")
 
@@ -60,12 +61,28 @@ class Goal:
 
 @dataclass(frozen=True)
 class Obstacle:
-    """A named, coloured obstacle; ``waypoints`` rows are ``[t, x, y, z]`` (None = static)."""
+    """A named, coloured obstacle; ``waypoints`` rows are ``[t, x, y, z]`` (None = static).
+
+    ``parts`` are the exact primitives in the base frame at the obstacle's pose: one (the
+    shape itself) for box, sphere and cylinder; several for a ``compound`` (an amorphous
+    object), whose ``shape`` is then the convex point set enclosing all parts — the one
+    convex shape that stands for it where a single shape is needed. Contact scoring and
+    rendering use the parts (:meth:`parts_at`), never that hull.
+    """
 
     name: str
     color: str
     shape: Shape
     waypoints: np.ndarray | None = None
+    parts: tuple[Shape, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.parts:
+            object.__setattr__(self, "parts", (self.shape,))
+
+    @property
+    def is_compound(self) -> bool:
+        return len(self.parts) > 1 or self.parts[0] is not self.shape
 
     @property
     def is_dynamic(self) -> bool:
@@ -92,6 +109,13 @@ class Obstacle:
     def shape_at(self, t: float) -> Shape:
         return self.shape if self.waypoints is None else self.shape.moved_to(self.position_at(t))
 
+    def parts_at(self, t: float) -> list[Shape]:
+        """The exact primitives at time ``t`` (motion translates the whole object)."""
+        if self.waypoints is None:
+            return list(self.parts)
+        offset = self.position_at(t) - self.shape.position
+        return [p.moved_to(p.position + offset) for p in self.parts]
+
 
 @dataclass(frozen=True)
 class Scenario:
@@ -116,7 +140,8 @@ class Scenario:
         return self.name.split("-", 1)[0]
 
     def obstacles_at(self, t: float) -> list[Shape]:
-        return [o.shape_at(t) for o in self.obstacles]
+        """Every obstacle's exact primitives at ``t`` (a compound contributes its parts)."""
+        return [p for o in self.obstacles for p in o.parts_at(t)]
 
 
 class _Reader:
@@ -226,7 +251,11 @@ def _obstacle(r: _Reader, data: object, index: int) -> Obstacle:
     kind = r.require(data, "shape", field)
     if kind not in SHAPES:
         raise r.fail(f"{field}.shape", f"unknown shape {kind!r}; expected one of {SHAPES}")
-    size = r.vector(r.require(data, "size", field), f"{field}.size", SIZE_LENGTH[kind], True)
+    if kind != "compound":
+        size = r.vector(r.require(data, "size", field), f"{field}.size", SIZE_LENGTH[kind],
+                        True)
+    elif data.get("size") is not None:
+        raise r.fail(f"{field}.size", "must be absent for a compound (its parts have sizes)")
     color = r.require(data, "color", field)
     if color not in COLORS:
         raise r.fail(f"{field}.color", f"unknown color {color!r}; expected one of {COLORS}")
@@ -237,8 +266,34 @@ def _obstacle(r: _Reader, data: object, index: int) -> Obstacle:
     )
     motion = data.get("motion")
     waypoints = None if motion is None else _waypoints(r, motion, f"{field}.motion")
+    if kind == "compound":
+        parts = tuple(compose(position, orientation, part, name)
+                      for part in _parts(r, data, field))
+        hull = np.vstack([enclosing_vertices(p) for p in parts]) - position
+        shape = Shape("points", (), position, points=hull, name=name)
+        return Obstacle(name=name, color=color, shape=shape, waypoints=waypoints, parts=parts)
     shape = Shape(kind, tuple(size), position, orientation, name=name)
     return Obstacle(name=name, color=color, shape=shape, waypoints=waypoints)
+
+
+def _parts(r: _Reader, data: dict, field: str) -> list[Shape]:
+    """The primitives of a compound, each posed in the obstacle's frame."""
+    parts = r.require(data, "parts", field)
+    if not isinstance(parts, list) or not parts:
+        raise r.fail(f"{field}.parts", "must be a non-empty list of box/sphere/cylinder parts")
+    out = []
+    for i, part in enumerate(parts):
+        pf = f"{field}.parts[{i}]"
+        part = r.mapping(part, pf)
+        kind = r.require(part, "shape", pf)
+        if kind not in PART_SHAPES:
+            raise r.fail(f"{pf}.shape", f"unknown part shape {kind!r}; expected one of "
+                         f"{PART_SHAPES}")
+        size = r.vector(r.require(part, "size", pf), f"{pf}.size", SIZE_LENGTH[kind], True)
+        position = r.vector(r.require(part, "position", pf), f"{pf}.position", 3)
+        orientation = r.quaternion(r.require(part, "orientation", pf), f"{pf}.orientation")
+        out.append(Shape(kind, tuple(size), position, orientation))
+    return out
 
 
 def parse_scenario(data: object, source: str = "<memory>") -> Scenario:

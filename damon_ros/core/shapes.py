@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 KINDS = ("box", "sphere", "cylinder", "points")
 """Shape kinds. ``points`` is a convex point set (its hull); one point is a point obstacle."""
@@ -97,3 +98,134 @@ def point(position: np.ndarray, name: str = "") -> Shape:
     """A point obstacle: a one-point convex set."""
     position = np.asarray(position, dtype=float)
     return Shape("points", (), position, points=np.zeros((1, 3)), name=name)
+
+
+# --- geometry of a shape: parts, enclosing vertices, volume, inside test, surface samples ---
+
+
+def compose(position: np.ndarray, orientation: np.ndarray, part: Shape, name: str = "") -> Shape:
+    """``part`` (posed in a parent frame) expressed in the frame that holds the parent at
+    ``position``/``orientation``: how a compound obstacle's parts reach the base frame."""
+    parent = Rotation.from_quat(_unit_quaternion(np.asarray(orientation, dtype=float)))
+    q = (parent * Rotation.from_quat(part.orientation)).as_quat()
+    position = np.asarray(position, dtype=float) + parent.apply(part.position)
+    return Shape(part.kind, part.size, position, q, part.points, name or part.name)
+
+
+def enclosing_vertices(shape: Shape, sides: int = 12) -> np.ndarray:
+    """Base-frame vertices whose convex hull contains ``shape``.
+
+    A box gives its corners; a cylinder a circumscribed ``sides``-gon prism; a sphere the
+    circumscribed prism of its bounding cylinder, both at ``r / cos(pi / sides)`` so every
+    flat face of the polygon stays outside the circle. The hull of such vertices over all
+    parts is the single convex shape that stands for a compound object where one is needed.
+    """
+    if shape.kind == "points":
+        return shape.position + shape.points @ shape.rotation().T
+    if shape.kind == "box":
+        half = 0.5 * np.asarray(shape.size)
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        local = signs * half
+    else:
+        r = shape.size[0]
+        h = r if shape.kind == "sphere" else 0.5 * shape.size[1]
+        angles = 2.0 * np.pi * np.arange(sides) / sides
+        ring = r / np.cos(np.pi / sides) * np.column_stack([np.cos(angles), np.sin(angles)])
+        local = np.vstack([np.column_stack([ring, np.full(sides, z)]) for z in (-h, h)])
+    return shape.position + local @ shape.rotation().T
+
+
+def volume(shape: Shape) -> float:
+    """Volume in m³ (a point set: the volume of its convex hull, 0 when flat)."""
+    if shape.kind == "box":
+        return float(np.prod(shape.size))
+    if shape.kind == "sphere":
+        return 4.0 / 3.0 * np.pi * shape.size[0] ** 3
+    if shape.kind == "cylinder":
+        return float(np.pi * shape.size[0] ** 2 * shape.size[1])
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return float(ConvexHull(shape.points).volume)
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def contains(shape: Shape, points: np.ndarray, tolerance: float = 0.0) -> np.ndarray:
+    """Whether each base-frame point (N×3) lies in ``shape`` (within ``tolerance`` metres).
+
+    A point set is its convex hull (a flat or single-point set contains only points within
+    ``tolerance`` of its vertices' bounding box, which is exact enough for evaluation)."""
+    p = (np.asarray(points, dtype=float).reshape(-1, 3) - shape.position) @ shape.rotation()
+    if shape.kind == "box":
+        return np.all(np.abs(p) <= 0.5 * np.asarray(shape.size) + tolerance, axis=1)
+    if shape.kind == "sphere":
+        return np.linalg.norm(p, axis=1) <= shape.size[0] + tolerance
+    if shape.kind == "cylinder":
+        return (np.hypot(p[:, 0], p[:, 1]) <= shape.size[0] + tolerance) & (
+            np.abs(p[:, 2]) <= 0.5 * shape.size[1] + tolerance)
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(shape.points)
+    except (QhullError, ValueError):
+        low, high = shape.points.min(axis=0), shape.points.max(axis=0)
+        return np.all((p >= low - tolerance) & (p <= high + tolerance), axis=1)
+    eq = hull.equations  # outward normals n, offsets b: inside where n·p + b <= 0
+    return np.all(p @ eq[:, :3].T + eq[:, 3] <= tolerance, axis=1)
+
+
+def surface_samples(shape: Shape, spacing: float = 0.01) -> np.ndarray:
+    """Base-frame points on the surface of a primitive, about ``spacing`` apart (and its
+    vertices/rims): what must lie inside an estimate for it to contain the object."""
+    if shape.kind == "box":
+        half = 0.5 * np.asarray(shape.size)
+        axes = [np.linspace(-h, h, max(2, int(np.ceil(2 * h / spacing)) + 1)) for h in half]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        on_face = np.any(np.isclose(np.abs(grid), half), axis=1)
+        local = grid[on_face]
+    elif shape.kind == "sphere":
+        r = shape.size[0]
+        n = max(32, int(4 * np.pi * r * r / spacing**2))
+        k = np.arange(n) + 0.5
+        polar = np.arccos(1 - 2 * k / n)
+        azimuth = np.pi * (1 + 5**0.5) * k
+        local = r * np.column_stack([np.cos(azimuth) * np.sin(polar),
+                                     np.sin(azimuth) * np.sin(polar), np.cos(polar)])
+    elif shape.kind == "cylinder":
+        r, h = shape.size[0], 0.5 * shape.size[1]
+        m = max(16, int(2 * np.pi * r / spacing))
+        a = 2 * np.pi * np.arange(m) / m
+        zs = np.linspace(-h, h, max(2, int(2 * h / spacing) + 1))
+        side = np.column_stack([np.tile(r * np.cos(a), len(zs)), np.tile(r * np.sin(a), len(zs)),
+                                np.repeat(zs, m)])
+        rings = [np.column_stack([rho * np.cos(a), rho * np.sin(a), np.full(m, z)])
+                 for rho in np.linspace(0, r, max(2, int(r / spacing) + 1)) for z in (-h, h)]
+        local = np.vstack([side, *rings])
+    else:
+        return enclosing_vertices(shape)
+    return shape.position + local @ shape.rotation().T
+
+
+def points_box(shape: Shape) -> Shape | None:
+    """The principal-axes box of a point set when it is smaller than the set's bounding
+    sphere about its mean, else None (then the sphere stands for the set).
+
+    The fast collision model replaces a point set by one primitive that contains its hull;
+    a sphere is cheap, but a flat or elongated hull (a tracked blob pushed back along the
+    camera's rays) fills a fraction of it and its sphere swallows nearby goals.
+    """
+    if shape.kind != "points" or len(shape.points) < 4:
+        return None
+    world = shape.position + shape.points @ shape.rotation().T
+    centre = world.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(world - centre, axis=1)))
+    _, _, vt = np.linalg.svd(world - centre, full_matrices=False)
+    axes = vt.T if np.linalg.det(vt.T) > 0 else vt.T * np.array([1.0, 1.0, -1.0])
+    local = (world - centre) @ axes
+    low, high = local.min(axis=0), local.max(axis=0)
+    size = high - low
+    if np.any(size < 1e-6) or np.prod(size) >= 4.0 / 3.0 * np.pi * radius**3:
+        return None
+    q = Rotation.from_matrix(axes).as_quat()
+    return Shape("box", tuple(size), centre + axes @ (0.5 * (low + high)), q, name=shape.name)

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit
 
-from damon_ros.core.shapes import Shape
+from damon_ros.core.shapes import Shape, points_box
 
 SPHERE, BOX, CYLINDER = 0, 1, 2
 
@@ -32,6 +32,7 @@ def pack_obstacles(obstacles: Sequence[Shape]):
     rot = np.zeros((k, 3, 3))
     params = np.zeros((k, 3))
     for i, s in enumerate(obstacles):
+        s = points_box(s) or s  # a point set: its principal box when smaller than its sphere
         rot[i] = s.rotation()
         pos[i] = s.position
         if s.kind == "sphere":

@@ -126,7 +126,7 @@ class ContactMonitor:
         obstacles = self.scenario.obstacles
         if not obstacles:
             return _contact_status(DiagnosticStatus.OK, "no obstacles", float("inf"), "", "", t)
-        c = self.robot.clearance(q, [obstacles[self._next].shape_at(t)])
+        c = self.robot.clearance(q, obstacles[self._next].parts_at(t))
         self._round.append((c.distance, c.link, t))
         self._next = (self._next + 1) % len(obstacles)
         if self._next:

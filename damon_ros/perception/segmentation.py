@@ -26,6 +26,9 @@ class Blob(NamedTuple):
     depth_mm: np.ndarray
     area_px: int
     partial: bool
+    edge: np.ndarray | None = None
+    """Per pixel: on the blob's outline. Thinning keeps these, because a shape's extent is
+    set by its outline and a bound is only as tight as the outline is sampled."""
 
 
 def _kernel(size: int) -> np.ndarray | None:
@@ -119,7 +122,10 @@ class Segmenter:
             d = depth[y0 + wy0:y0 + wy1, x0 + wx0:x0 + wx1]
             at_border = (x0 + bx == 0 or y0 + by == 0 or x0 + bx + bw == width
                          or y0 + by + bh == height)
-            rows, cols = np.nonzero(inside & (d > 0))
+            valid = inside & (d > 0)
+            rows, cols = np.nonzero(valid)
+            outline = valid & ~cv2.erode(valid.view(np.uint8), _RING,
+                                         borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
             blobs.append(Blob(
                 color=color,
                 u=(cols + x0 + wx0) * self.step,
@@ -127,5 +133,6 @@ class Segmenter:
                 depth_mm=d[rows, cols],
                 area_px=area * self.step**2,
                 partial=at_border or _occluded(inside, d),
+                edge=outline[rows, cols],
             ))
         return blobs

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
 from damon_ros.perception.segmentation import Blob
+from damon_ros.perception.tight_fit import fit_box, hull_points
 from damon_ros.perception.tracker_config import TrackerConfig
 
 MAD_TO_SIGMA = 1.4826
@@ -32,7 +33,11 @@ def blob_points(camera: Camera, blob: Blob, config: TrackerConfig) -> np.ndarray
     u, v, z = blob.u[keep], blob.v[keep], z[keep]
     if z.size > config.max_points:
         stride = int(math.ceil(z.size / config.max_points))
-        u, v, z = u[::stride], v[::stride], z[::stride]
+        thin = np.zeros(z.size, dtype=bool)
+        thin[::stride] = True
+        if blob.edge is not None:  # the outline stays whole: it sets the extent
+            thin |= blob.edge[keep]
+        u, v, z = u[thin], v[thin], z[thin]
     if z.size == 0:
         return np.empty((0, 3))
     median = float(np.median(z))
@@ -147,6 +152,10 @@ def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: 
     if not _is_round(config, radius, rms, width, float(centre @ basis[:, 2]),
                      float(local[2].mean())):
         return None
+    if config.shape == "auto":
+        # The fit, not the noisy points, says where the surface is: the farthest point
+        # reaches ~3.5 noise sigmas past it, which adds a third to a small ball's volume.
+        return centre, radius
     return centre, max(radius, _reach(local, basis.T @ centre))
 
 
@@ -157,7 +166,7 @@ def _reach(local: np.ndarray, centre: np.ndarray) -> float:
 
 
 def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
-                   name: str = "") -> Estimate:
+                   name: str = "", partial: bool = False) -> Estimate:
     """Conservative bounding shape (base frame) of an obstacle seen as optical-frame points.
 
     Round blobs: the fitted sphere, radius ``max(fit, farthest point) + inflation``. Others:
@@ -178,6 +187,13 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
         if config.shape == "box":
             return Estimate(Shape("box", (2 * radius,) * 3, centre, name=name), True)
         return Estimate(Shape("sphere", (radius,), centre, name=name), True)
+    if config.shape == "auto" and not partial:
+        # What is fully in view gets a tight shape (tight_fit); a cut-off blob keeps the
+        # view-extended bound below, which does not rely on having seen the silhouette.
+        box = fit_box(camera, points @ R.T + t, config, name)
+        if box is not None:
+            return Estimate(box.shape, False)
+        return Estimate(hull_points(camera, points, config, name), False)
     ranges = np.sqrt((points_t * points_t).sum(axis=0))
     far = local * (1.0 + width / ranges)  # each point pushed back along its ray by width
     low = np.minimum(low, far.min(axis=1))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +18,16 @@ import numpy as np
 from damon_ros.core.resources import config_file, read_yaml_section
 
 SHAPE_MODES = ("sphere", "box", "auto")
+THICKNESS_CLASSES = ("box", "blob")
+"""Shape classes with a prior on their hidden depth (``max_thickness_m``)."""
 
 _LOWER_BOUNDS: tuple[tuple[tuple[str, ...], str, Callable[[Any], bool]], ...] = (
     (("downsample", "min_points", "max_points"), ">= 1", lambda v: int(v) < 1),
     (("open_kernel_px", "close_kernel_px", "min_area_px", "inflation_m", "sphere_rms_floor_m",
-      "min_depth_m"), ">= 0", lambda v: v < 0),
+      "min_depth_m", "surface_margin_m", "static_speed_mps"), ">= 0", lambda v: v < 0),
     (("max_depth_m", "mad_k", "mad_floor_m", "sphere_rms_ratio", "sphere_width_ratio",
-      "gate_m", "max_age_s", "velocity_window_s", "time_jump_s"), "> 0", lambda v: not v > 0),
+      "gate_m", "max_age_s", "velocity_window_s", "time_jump_s", "face_tolerance_m",
+      "static_hold_s", "moving_speed_mps", "moving_shift_m"), "> 0", lambda v: not v > 0),
 )
 """``(fields, bound, violates)``: the numeric fields in the order they are checked, the bound
 named in the error, and the test of a value that breaks it."""
@@ -57,6 +60,14 @@ class TrackerConfig:
     max_age_s: float = 0.5
     velocity_window_s: float = 0.3
     time_jump_s: float = 1.0
+    max_thickness_m: dict[str, float] = field(default_factory=lambda: {"box": 0.15,
+                                                                       "blob": 0.25})
+    face_tolerance_m: float = 0.008
+    surface_margin_m: float = 0.001
+    static_speed_mps: float = 0.03
+    static_hold_s: float = 0.25
+    moving_speed_mps: float = 0.08
+    moving_shift_m: float = 0.02
 
     def __post_init__(self) -> None:
         if not self.colors:
@@ -68,6 +79,15 @@ class TrackerConfig:
                 value = getattr(self, name)
                 if violates(value):
                     raise ValueError(f"tracker {name} {value} must be {bound}")
+        thickness = self.max_thickness_m
+        if not isinstance(thickness, dict) or set(thickness) != set(THICKNESS_CLASSES) or any(
+                isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0
+                for v in thickness.values()):
+            raise ValueError(f"tracker max_thickness_m {thickness!r} must map each of "
+                             f"{THICKNESS_CLASSES} to a positive depth in metres")
+        if self.static_speed_mps >= self.moving_speed_mps:
+            raise ValueError(f"tracker static_speed_mps {self.static_speed_mps} must be below "
+                             f"moving_speed_mps {self.moving_speed_mps} (hysteresis)")
         if self.min_depth_m >= self.max_depth_m:
             raise ValueError(
                 f"tracker min_depth_m {self.min_depth_m} must be below max_depth_m "

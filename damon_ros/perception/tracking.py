@@ -9,7 +9,8 @@ no ROS in it (the tracker node is a thin adapter):
    shape in the base frame;
 3. tracking (here): per colour class, detections are matched to tracks by gated nearest
    neighbour (optimal assignment) so ids stay stable; velocity is the least-squares slope of
-   the recent centres (:mod:`damon_ros.perception.velocity`); tracks unseen for
+   the recent centres (:mod:`damon_ros.perception.velocity`), zero once a track passes the
+   stationarity test (:mod:`damon_ros.perception.stationarity`); tracks unseen for
    ``max_age_s`` are dropped.
 
 The settings of all three are one :class:`~damon_ros.perception.tracker_config.TrackerConfig`.
@@ -27,8 +28,10 @@ from scipy.optimize import linear_sum_assignment
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
+from damon_ros.perception.fusion import fuse
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
+from damon_ros.perception.stationarity import Stationarity
 from damon_ros.perception.tracker_config import TrackerConfig, load_tracker_config
 from damon_ros.perception.velocity import VelocityWindow
 
@@ -85,7 +88,8 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         points = blob_points(camera, blob, config)
         if len(points) < config.min_points:
             continue
-        estimate = estimate_shape(camera, points, config, name=blob.color)
+        estimate = estimate_shape(camera, points, config, name=blob.color,
+                                  partial=blob.partial)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
                                len(points), blob.area_px))
     return found
@@ -121,6 +125,7 @@ class _TrackState:
     first_seen: float
     last_seen: float
     motion: VelocityWindow
+    stillness: Stationarity
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     hits: int = 0
     partial: bool = False
@@ -141,7 +146,7 @@ class _TrackState:
         self.hits += 1
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:
-            self.velocity = velocity
+            self.velocity = self.stillness.update(stamp, shape.position, velocity)
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,
@@ -187,6 +192,30 @@ class Tracker:
         check_images(self.camera, rgb, depth)
         self._check_stamp(stamp_s)
         self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter)
+        return self._track(stamp_s)
+
+    def update_views(self, cameras: Sequence[Camera], frames: Sequence[tuple[np.ndarray,
+                     np.ndarray]], stamp_s: float) -> list[Track]:
+        """Process one synchronised frame of each camera (``frames[c]`` = ``(rgb, depth)`` of
+        ``cameras[c]``): detections are fused across views (:mod:`fusion`), then tracked."""
+        if len(cameras) != len(frames) or not cameras:
+            raise ValueError(f"{len(frames)} frames for {len(cameras)} cameras")
+        stamp_s = float(stamp_s)
+        for camera, (rgb, depth) in zip(cameras, frames, strict=True):
+            check_images(camera, rgb, depth)
+        self._check_stamp(stamp_s)
+        views = [detect(c, self.config, rgb, depth, self.segmenter)
+                 for c, (rgb, depth) in zip(cameras, frames, strict=True)]
+        self.detections = []
+        for color in sorted({d.color for view in views for d in view}):
+            per_view = [[(d.shape, d.partial) for d in view if d.color == color]
+                        for view in views]
+            for shape, partial in fuse(per_view, self.config.gate_m):
+                self.detections.append(Detection(color, shape, shape.kind == "sphere",
+                                                 partial, 0, 0))
+        return self._track(stamp_s)
+
+    def _track(self, stamp_s: float) -> list[Track]:
         for color in {d.color for d in self.detections} | {t.color for t in self._tracks}:
             self._associate(color, [d for d in self.detections if d.color == color], stamp_s)
         self._tracks = [t for t in self._tracks
@@ -210,7 +239,8 @@ class Tracker:
         for i, d in enumerate(detections):
             if i not in matched:
                 motion = VelocityWindow(self.config.velocity_window_s)
-                state = _TrackState(self._next_id, color, d.shape, stamp, stamp, motion)
+                state = _TrackState(self._next_id, color, d.shape, stamp, stamp, motion,
+                                    Stationarity(self.config))
                 state.observe(d, stamp)
                 self._tracks.append(state)
                 self._next_id += 1

@@ -92,12 +92,13 @@ class _Perception:
             tracks = self.tracker.update(rgb, depth, seen_at)
             return [(tr.shape, tr.velocity) for tr in tracks]
         out = []
-        for obstacle in self.scenario.obstacles:
-            shape = obstacle.shape_at(seen_at)
+        for obstacle in self.scenario.obstacles:  # a compound: each exact part
+            offset = np.zeros(3)
             if self.config.perception_noise > 0:
-                shape = shape.moved_to(shape.position + self.rng.normal(
-                    scale=self.config.perception_noise, size=3))
-            out.append((shape, obstacle.velocity_at(seen_at)))
+                offset = self.rng.normal(scale=self.config.perception_noise, size=3)
+            velocity = obstacle.velocity_at(seen_at)
+            out.extend((shape.moved_to(shape.position + offset), velocity)
+                       for shape in obstacle.parts_at(seen_at))
         return out
 
 

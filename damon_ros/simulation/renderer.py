@@ -272,8 +272,9 @@ def render(
 
 
 def scene_at(scenario: Scenario, t: float) -> list[tuple[Shape, str]]:
-    """The scenario's obstacles at time ``t`` as ``(shape, color)`` pairs for :func:`render`."""
-    return [(o.shape_at(t), o.color) for o in scenario.obstacles]
+    """The scenario's obstacles at time ``t`` as ``(shape, color)`` pairs for :func:`render`;
+    a compound obstacle contributes each of its parts, all in its colour."""
+    return [(p, o.color) for o in scenario.obstacles for p in o.parts_at(t)]
 
 
 def render_settings_kwargs(settings: RenderSettings, rng: np.random.Generator) -> dict:

@@ -49,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
             states.append(("goal", scenario.goal.joints))
         for label, q in states:
             for obstacle in scenario.obstacles:
-                c = robot.clearance(q, [obstacle.shape_at(args.time)])
+                c = robot.clearance(q, obstacle.parts_at(args.time))
+                kind = "compound" if obstacle.is_compound else obstacle.shape.kind
                 print(f"{scenario.name:<10} {label:<6} {obstacle.name:<10} "
-                      f"{obstacle.shape.kind:<9} {c.distance:>11.4f}  {c.link}")
+                      f"{kind:<9} {c.distance:>11.4f}  {c.link}")
     return 1 if failures else 0

@@ -1,0 +1,107 @@
+"""Several cameras, one world: detections of one object from several views, intersected.
+
+Each camera's bound contains the object (the safety rule of :mod:`shape_fit` and
+:mod:`tight_fit`), so the intersection of the bounds of one object from several cameras
+contains it too — and is smaller: the depth one camera cannot see is what another sees from
+the side, so the hidden extent shrinks to what no camera sees. Every bound is convex (box,
+sphere, cylinder, point-set hull), so the intersection is a convex polytope: the half-spaces
+of each bound (curved ones by tangent planes, which contain the curve) are intersected and
+the vertices become a point-set obstacle. A cut-off (partial) detection bounds only what it
+shows and would cut the object: it is only used when no view saw the object whole.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
+
+from damon_ros.core.shapes import Shape, enclosing_vertices
+
+_DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                        if (x, y, z) != (0, 0, 0)], dtype=float)
+_DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+
+
+def halfspaces(shape: Shape) -> np.ndarray:
+    """``[n, b]`` rows with ``n . p + b <= 0`` inside, whose intersection contains ``shape``."""
+    R = shape.rotation()
+    if shape.kind == "sphere":
+        n = _DIRECTIONS
+        return np.column_stack([n, -(n @ shape.position) - shape.size[0]])
+    if shape.kind == "box":
+        half = 0.5 * np.asarray(shape.size)
+        n = np.vstack([R.T, -R.T])  # rows: the box axes in the base frame, both signs
+        return np.column_stack([n, -(n @ shape.position) - np.concatenate([half, half])])
+    vertices = enclosing_vertices(shape)  # a cylinder's prism or a point set's vertices
+    hull = ConvexHull(vertices)
+    return hull.equations
+
+
+def _interior(hs: np.ndarray) -> np.ndarray | None:
+    """The Chebyshev centre of the half-space intersection, or None when it is (nearly)
+    empty: then the bounds were not of one object."""
+    norms = np.linalg.norm(hs[:, :3], axis=1)
+    c = np.array([0.0, 0.0, 0.0, -1.0])  # maximise the radius of the inscribed ball
+    A = np.column_stack([hs[:, :3], norms])
+    result = linprog(c, A_ub=A, b_ub=-hs[:, 3], bounds=[(None, None)] * 3 + [(0, None)],
+                     method="highs")
+    if not result.success or result.x[3] < 1e-4:
+        return None
+    return result.x[:3]
+
+
+def intersect(shapes: list[Shape], name: str = "") -> Shape | None:
+    """The convex intersection of several bounds of one object as a point set, or None
+    when they do not overlap."""
+    if len(shapes) == 1:
+        return shapes[0]
+    hs = np.vstack([halfspaces(s) for s in shapes])
+    centre = _interior(hs)
+    if centre is None:
+        return None
+    try:
+        vertices = HalfspaceIntersection(hs, centre).intersections
+        vertices = vertices[ConvexHull(vertices).vertices]
+    except (QhullError, ValueError):
+        return None
+    mid = vertices.mean(axis=0)
+    return Shape("points", (), mid, points=vertices - mid, name=name or shapes[0].name)
+
+
+def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float) -> list[tuple[Shape, bool]]:
+    """Detections of one colour class from several cameras -> one bound per object.
+
+    ``views[c]`` holds camera ``c``'s ``(shape, partial)`` pairs. Detections of different
+    cameras are one object when their bounds overlap and their centres are within
+    ``gate_m`` (greedy, in camera order); each object's bound is the intersection of its
+    whole views (of its partial ones when it has no whole view). A fused object is partial
+    only when every view of it is.
+    """
+    groups: list[list[tuple[Shape, bool]]] = []
+    for detections in views:
+        taken: set[int] = set()
+        for shape, partial in detections:
+            best, best_d = None, gate_m
+            for g, group in enumerate(groups):
+                if g in taken:
+                    continue
+                d = float(np.linalg.norm(group[0][0].position - shape.position))
+                if d <= best_d and intersect([group[0][0], shape]) is not None:
+                    best, best_d = g, d
+            if best is None:
+                groups.append([(shape, partial)])
+                taken.add(len(groups) - 1)
+            else:
+                groups[best].append((shape, partial))
+                taken.add(best)
+    fused = []
+    for group in groups:
+        whole = [s for s, p in group if not p]
+        members = whole or [s for s, _ in group]
+        shape = intersect(members) if len(members) > 1 else members[0]
+        if shape is None:  # views that overlap pairwise but not all together: keep one
+            shape = min(members, key=lambda s: s.bounding_radius())
+            # the smallest bound of a whole view still contains the object
+        fused.append((shape, not whole))
+    return fused

@@ -1,0 +1,191 @@
+"""Tight shapes from the visible surface: an upright box from its faces, or a hull.
+
+The view-extended bound of :mod:`damon_ros.perception.shape_fit` assumes every obstacle is as
+deep as it is wide, which swallows goals near thin boxes. Here what the camera shows is used
+instead, and only what it cannot show is bounded by a prior:
+
+* **box** (:func:`fit_box`): a yaw-only (upright) box. Its yaw is the minimum-area rectangle
+  of the points seen from above (front and side faces project to edges of the footprint,
+  a visible top face fills it). A face is *visible* when enough points lie on its plane and
+  it faces the camera. The extent along an axis is *seen* when a face parallel to that axis
+  is visible (such a face spans the axis completely); otherwise only the front face is
+  known and the box is extended behind it to the class's ``max_thickness_m``.
+* **blob** (:func:`hull_points`): anything that fits no primitive (an L-shaped tool, a tilted
+  cylinder) becomes the convex hull of its visible points together with the same points
+  pushed back along their rays by the blob prior: every hidden part of the object lies on a
+  ray through the silhouette, behind the visible surface and (by the prior) within that
+  depth of it.
+
+Margins are what the sampling cannot see, not a blanket inflation: a face's own plane is
+measured (the extreme of noisy points lies outside it), a silhouette edge is known to one
+sample spacing on the image plane, stretched by the obliquity of the face it is seen on.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from damon_ros.core.shapes import Shape
+from damon_ros.perception.camera import Camera
+from damon_ros.perception.tracker_config import TrackerConfig
+
+FACE_SHARE = 0.04
+"""A face is visible when at least this share of the points (and 8) lie on its plane."""
+BOX_SHARE = 0.92
+"""A blob is a box when at least this share of its points lie on the fitted box's faces."""
+YAW_ERROR_RAD = 0.006
+"""Residual yaw error after the face fit (about a third of a degree, several times what depth
+noise leaves on a face of a few hundred points)."""
+YAW_NOISE_M = 0.0025
+"""Depth noise on a face turns into a yaw error of about this over the face's width."""
+MAX_YAW_ERROR_RAD = 0.06
+MIN_FACING = 0.1
+"""A face counts as seen only when the camera is at least this sine of an angle off its plane."""
+MAX_OBLIQUITY = 4.0
+"""An edge seen on a face at grazing incidence is stretched at most this much (cap)."""
+OCTAHEDRON = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+                      dtype=float) * math.sqrt(3.0)
+"""Offsets whose hull (an octahedron of vertex distance sqrt(3)) contains the unit ball."""
+
+
+class BoxFit(NamedTuple):
+    """An upright box bound and what was seen of it: ``seen[k]`` is True when the extent
+    along axis ``k`` (box x, y, z) was observed, False when the prior bounds it."""
+
+    shape: Shape
+    seen: tuple[bool, bool, bool]
+    hidden_m: tuple[float, float, float]
+
+
+def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
+              yaw: float) -> tuple[float, float]:
+    """The yaw of the best-populated vertical face, by a total-least-squares line through its
+    points seen from above (``yaw`` itself when no face has enough points), and the face's
+    width (the yaw of a narrow face is uncertain)."""
+    counts = [near_low[:, 0].sum(), near_high[:, 0].sum(), near_low[:, 1].sum(),
+              near_high[:, 1].sum()]
+    best = int(np.argmax(counts))
+    if counts[best] < 10:
+        return yaw, 0.0
+    mask = (near_low if best % 2 == 0 else near_high)[:, best // 2]
+    only = mask & ~(near_low[:, 2] | near_high[:, 2])  # not the top or bottom face
+    xy = points[only if only.sum() >= 10 else mask, :2]
+    xy = xy - xy.mean(axis=0)
+    _, _, vt = np.linalg.svd(xy, full_matrices=False)
+    normal = vt[1]  # the face's normal in the plane: the least spread direction
+    face_axis = best // 2  # the face is across this box axis: its normal is that axis
+    angle = math.atan2(normal[1], normal[0]) - (0.0 if face_axis == 0 else 0.5 * math.pi)
+    # the same axes modulo a quarter turn, nearest the rectangle's estimate
+    width = float(np.ptp(xy @ vt[0]))
+    return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
+
+
+def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
+    """Distance between neighbouring samples on the image plane at ``depth``."""
+    return config.downsample * depth / camera.K[0, 0]
+
+
+def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
+            name: str = "") -> BoxFit | None:
+    """The upright box of base-frame ``points`` (N x 3), or None when they are no box."""
+    if len(points) < config.min_points:
+        return None
+    xy = np.ascontiguousarray(points[:, :2], dtype=np.float32)
+    (_, _), (_, _), angle = cv2.minAreaRect(xy)
+    yaw = math.radians(angle)
+    tol = config.face_tolerance_m
+    for refine in (True, False):
+        c, s = math.cos(yaw), math.sin(yaw)
+        axes = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # columns: box x, y, z
+        local = points @ axes
+        # Depth noise spreads a face's points over several sigma; the face test is against
+        # robust planes (percentiles), the bound against the extremes.
+        robust_low, robust_high = np.percentile(local, [1.0, 99.0], axis=0)
+        near_low = np.abs(local - robust_low) <= tol
+        near_high = np.abs(local - robust_high) <= tol
+        if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
+            yaw, face_width = _face_yaw(points, near_low, near_high, yaw)
+    low, high = local.min(axis=0), local.max(axis=0)
+    on_face = (near_low | near_high).any(axis=1)
+    if on_face.mean() < BOX_SHARE:
+        return None
+    eye = camera.position @ axes
+    need = max(8, int(FACE_SHARE * len(points)))
+    # visible[k, 0] / [k, 1]: the face at low / high of axis k faces the camera (by more than
+    # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
+    reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
+    visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k] - reach,
+                         near_high[:, k].sum() >= need and eye[k] > high[k] + reach]
+                        for k in range(3)])
+    if not visible.any():
+        return None
+    centre_depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
+    delta = spacing_m(camera, config, centre_depth)
+    view = points.mean(axis=0) - camera.position
+    view /= np.linalg.norm(view)
+    cosines = np.abs(axes.T @ view)  # how squarely each axis's faces are seen
+    margin_face = config.surface_margin_m
+    seen, hidden = [], []
+    lo, hi = low.copy(), high.copy()
+    error = min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(face_width, 1e-3)), MAX_YAW_ERROR_RAD)
+    for k in range(3):
+        others = [j for j in range(3) if j != k and visible[j].any()]
+        if others:
+            best = max(cosines[j] for j in others)
+            edge = delta * min(1.0 / max(best, 1e-6), MAX_OBLIQUITY) + margin_face
+            lo[k] -= margin_face if visible[k, 0] else edge
+            hi[k] += margin_face if visible[k, 1] else edge
+            seen.append(True)
+            hidden.append(0.0)
+            continue
+        # Only a face across this axis is seen: its depth is the prior's.
+        prior = config.max_thickness_m["box"]
+        if visible[k, 0]:
+            lo[k] -= margin_face
+            extra = max(0.0, low[k] + prior - high[k])
+            hi[k] += extra + margin_face
+        elif visible[k, 1]:
+            hi[k] += margin_face
+            extra = max(0.0, low[k] - (high[k] - prior))
+            lo[k] -= extra + margin_face
+        else:
+            return None
+        seen.append(False)
+        hidden.append(extra)
+    # The corners far along one horizontal axis move across the other by the yaw error.
+    skew = error * (hi - lo)[[1, 0]]
+    lo[:2] -= skew
+    hi[:2] += skew
+    centre = axes @ (0.5 * (lo + hi))
+    q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
+    shape = Shape("box", tuple(hi - lo), centre, q, name=name)
+    return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,
+                name: str = "") -> Shape:
+    """Convex point-set bound of a blob: the hull of the visible points and of the same
+    points pushed back by the blob prior along their rays, grown by the sampling margin."""
+    p = np.asarray(points_optical, dtype=float)
+    ranges = np.linalg.norm(p, axis=1)
+    far = p * (1.0 + config.max_thickness_m["blob"] / ranges)[:, None]
+    cloud = np.vstack([p, far])
+    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 + \
+        config.surface_margin_m
+    try:
+        cloud = cloud[ConvexHull(cloud).vertices]
+    except (QhullError, ValueError):
+        pass
+    grown = (cloud[:, None, :] + margin * OCTAHEDRON[None]).reshape(-1, 3)
+    try:
+        grown = grown[ConvexHull(grown).vertices]
+    except (QhullError, ValueError):
+        pass
+    base = grown @ camera.rotation.T + camera.position
+    centre = base.mean(axis=0)
+    return Shape("points", (), centre, points=base - centre, name=name)

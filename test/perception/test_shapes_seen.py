@@ -1,0 +1,229 @@
+"""Obstacles as they are: compound ground truth, tight shapes that contain the truth, and
+still things that stay still.
+
+Each estimate is checked against the exact scenario geometry (dense surface samples must lie
+inside it): containment is the safety rule of the tracker, tightness is what it is for.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import yaml
+
+from damon_ros.core import shapes
+from damon_ros.core.resources import public_scenarios_dir
+from damon_ros.core.scenario import ScenarioError, parse_scenario
+from damon_ros.core.shapes import Shape
+from damon_ros.perception.camera import load_camera
+from damon_ros.perception.tracker_config import load_tracker_config
+from damon_ros.perception.tracking import Tracker, detect
+from damon_ros.simulation.renderer import render, scene_at
+
+CAMERA = load_camera()
+CONFIG = load_tracker_config()
+
+TOOL = yaml.safe_load("""
+name: tool
+shape: compound
+color: yellow
+parts:
+  - {shape: box, size: [0.20, 0.04, 0.04], position: [0.0, 0.0, 0.0], orientation: [0, 0, 0, 1]}
+  - {shape: box, size: [0.04, 0.04, 0.16], position: [0.08, 0.0, 0.10], orientation: [0, 0, 0, 1]}
+  - {shape: sphere, size: [0.035], position: [-0.10, 0.0, 0.0], orientation: [0, 0, 0, 1]}
+pose: {position: [0.40, 0.35, 0.30], orientation: [0, 0, 0.38268, 0.92388]}
+""")
+
+
+def _scenario(base: str, *extra: dict, drop: bool = False):
+    data = yaml.safe_load((public_scenarios_dir() / f"{base}.yaml").read_text())
+    if drop:
+        data["obstacles"] = []
+    data["obstacles"] += [copy.deepcopy(e) for e in extra]
+    return parse_scenario(data, f"{base}+test")
+
+
+def _samples(parts) -> np.ndarray:
+    return np.vstack([shapes.surface_samples(p, 0.008) for p in parts])
+
+
+def _inside(estimate: Shape, parts) -> float:
+    return float(shapes.contains(estimate, _samples(parts), 1e-9).mean())
+
+
+# --- compound ground truth --------------------------------------------------------------------
+
+
+def test_a_compound_is_parsed_into_posed_parts_and_an_enclosing_hull():
+    scenario = _scenario("A-001", TOOL)
+    tool = scenario.obstacles[-1]
+    assert tool.is_compound and [p.kind for p in tool.parts] == ["box", "box", "sphere"]
+    # the first part sits at the pose; the vertical bar is rotated 45 deg about z with it
+    assert np.allclose(tool.parts[0].position, [0.40, 0.35, 0.30])
+    assert np.allclose(tool.parts[1].position, [0.40 + 0.08 / 2**0.5, 0.35 + 0.08 / 2**0.5,
+                                                0.40], atol=1e-4)
+    assert _inside(tool.shape, tool.parts) == 1.0
+    assert len(scenario.obstacles_at(0.0)) == len(scenario.obstacles) + 2
+
+
+def test_a_moving_compound_moves_all_its_parts():
+    moving = dict(TOOL, motion={"type": "waypoints",
+                                "waypoints": [[0.0, 0.40, 0.35, 0.30], [1.0, 0.40, 0.15, 0.30]]})
+    tool = _scenario("A-001", moving).obstacles[-1]
+    for before, after in zip(tool.parts_at(0.0), tool.parts_at(1.0), strict=True):
+        assert np.allclose(after.position - before.position, [0.0, -0.2, 0.0])
+
+
+@pytest.mark.parametrize(("edit", "field"), [
+    (lambda o: o.update(size=[0.1, 0.1, 0.1]), "obstacles[1].size"),
+    (lambda o: o.pop("parts"), "obstacles[1].parts"),
+    (lambda o: o.update(parts=[]), "obstacles[1].parts"),
+    (lambda o: o["parts"][1].update(shape="compound"), "obstacles[1].parts[1].shape"),
+    (lambda o: o["parts"][0].update(size=[0.1]), "obstacles[1].parts[0].size"),
+    (lambda o: o["parts"][2].pop("orientation"), "obstacles[1].parts[2].orientation"),
+])
+def test_bad_compounds_are_refused_naming_the_field(edit, field):
+    tool = copy.deepcopy(TOOL)
+    edit(tool)
+    with pytest.raises(ScenarioError) as err:
+        _scenario("A-001", tool)
+    assert err.value.field == field
+
+
+def test_the_mock_camera_renders_every_part_in_the_obstacles_colour():
+    scenario = _scenario("A-001", TOOL, drop=True)
+    scene = scene_at(scenario, 0.0)
+    assert [c for _, c in scene] == ["yellow"] * 3
+    rgb, depth = render(CAMERA, scene)
+    each = [np.count_nonzero(render(CAMERA, [item])[1] < 3400) for item in scene]
+    assert all(n > 50 for n in each)
+    assert np.count_nonzero(depth < 3400) >= max(each)
+
+
+# --- tight shapes -----------------------------------------------------------------------------
+
+
+def _one_detection(scenario, t=0.0, seed=0):
+    rgb, depth = render(CAMERA, scene_at(scenario, t), 0.002, 0.01,
+                        np.random.default_rng(seed))
+    found = detect(CAMERA, CONFIG, rgb, depth)
+    assert len(found) == 1, [d.shape.kind for d in found]
+    return found[0]
+
+
+@pytest.mark.parametrize("yaw_deg", [-35.0, -12.0, 20.0, 40.0])
+def test_a_yawed_box_gets_a_yawed_box_that_contains_it_and_is_tight(yaw_deg):
+    half = np.radians(yaw_deg) / 2
+    box = {"name": "b", "shape": "box", "size": [0.09, 0.22, 0.18], "color": "red",
+           "pose": {"position": [0.5, 0.1, 0.35], "orientation": [0, 0, np.sin(half),
+                                                                   np.cos(half)]}}
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        d = _one_detection(scenario, seed=seed)
+        assert d.shape.kind == "box" and not d.partial
+        est_yaw = np.degrees(2 * np.arctan2(d.shape.orientation[2], d.shape.orientation[3]))
+        assert min(abs((est_yaw - yaw_deg + 45) % 90 - 45), 90) < 1.5  # axes up to a quarter turn
+        assert _inside(d.shape, [truth]) == 1.0
+        assert shapes.volume(d.shape) < 1.6 * shapes.volume(truth)
+        assert np.linalg.norm(d.shape.position - truth.position) < 0.03
+
+
+def test_a_box_seen_only_from_its_face_is_bounded_by_the_thickness_prior():
+    """Straight on and level with the camera, only the front face shows: its depth is the
+    prior's (config max_thickness_m.box), not the box's width."""
+    from damon_ros.perception.tight_fit import fit_box
+
+    rng = np.random.default_rng(0)
+    face = np.column_stack([np.full(400, 0.45) + rng.normal(0, 0.001, 400),
+                            rng.uniform(-0.1, 0.1, 400), rng.uniform(0.9, 1.2, 400)])
+    fit = fit_box(CAMERA, face, CONFIG)
+    assert fit is not None and fit.seen.count(False) == 1 and fit.seen[2]  # depth unseen
+    depth = fit.shape.size[fit.seen.index(False)]
+    assert fit.hidden_m[fit.seen.index(False)] > 0.1
+    assert fit.shape.position[0] < 0.45 - 0.05  # extended away from the camera (at x 2.5)
+    assert CONFIG.max_thickness_m["box"] <= depth < CONFIG.max_thickness_m["box"] + 0.02
+
+
+def test_a_compound_seen_by_the_camera_becomes_a_point_set_that_contains_it():
+    scenario = _scenario("A-001", TOOL, drop=True)
+    tool = scenario.obstacles[0]
+    for seed in range(3):
+        d = _one_detection(scenario, seed=seed)
+        assert d.shape.kind == "points"
+        assert _inside(d.shape, tool.parts) == 1.0
+
+
+def test_a_tilted_cylinder_fits_no_box_and_its_hull_contains_it():
+    pole = {"name": "p", "shape": "cylinder", "size": [0.05, 0.2], "color": "blue",
+            "pose": {"position": [0.5, 0.0, 0.3], "orientation": [0.47285, 0.0, 0.0, 0.88114]}}
+    scenario = _scenario("A-001", pole, drop=True)
+    d = _one_detection(scenario)
+    assert d.shape.kind == "points"
+    assert _inside(d.shape, scenario.obstacles[0].parts) == 1.0
+
+
+# --- stationarity -----------------------------------------------------------------------------
+
+
+def test_a_still_box_has_zero_velocity_and_a_moved_one_moves_again():
+    box = {"name": "b", "shape": "box", "size": [0.1, 0.2, 0.2], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.35], "orientation": [0, 0, 0.1, 0.995]},
+           "motion": {"type": "waypoints", "waypoints": [[0.0, 0.5, 0.0, 0.35],
+                                                        [2.0, 0.5, 0.0, 0.35],
+                                                        [3.0, 0.5, 0.3, 0.35]]}}
+    scenario = _scenario("A-001", box, drop=True)
+    tracker = Tracker(CAMERA, CONFIG)
+    rng = np.random.default_rng(3)
+    speeds = {}
+    for t in np.arange(0.0, 2.8, 1 / 30):
+        rgb, depth = render(CAMERA, scene_at(scenario, t), 0.002, 0.01, rng)
+        (track,) = tracker.update(rgb, depth, t)
+        speeds[round(t, 3)] = float(np.linalg.norm(track.velocity))
+    still = [v for t, v in speeds.items() if CONFIG.static_hold_s + 0.4 <= t <= 2.0]
+    assert still and all(v == 0.0 for v in still)  # exactly zero, not small
+    moving = [v for t, v in speeds.items() if t >= 2.5]
+    assert moving and all(v > 0.15 for v in moving)  # truth: 0.3 m/s
+
+
+# --- several cameras --------------------------------------------------------------------------
+
+
+def _look_at(eye, target):
+    """A camera at ``eye`` (base frame) looking at ``target``, with the shipped intrinsics."""
+    from scipy.spatial.transform import Rotation
+
+    from damon_ros.perception.camera import Camera, pose_matrix
+
+    eye, target = np.asarray(eye, dtype=float), np.asarray(target, dtype=float)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    q = Rotation.from_matrix(np.column_stack([x, y, z])).as_quat()
+    return Camera(CAMERA.width, CAMERA.height, CAMERA.K, pose_matrix(eye, q))
+
+
+def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
+    """Seen level from the front only its face shows (depth = the prior); a second camera
+    from the side sees that depth, and the fused bound is tight and still contains it."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.9], "orientation": [0, 0, 0, 1]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])  # level: the top face does not show
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    rng = np.random.default_rng(0)
+    frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (front, side)]
+    one = Tracker(front, CONFIG).update(*frames[0], 0.0)
+    two = Tracker(front, CONFIG).update_views([front, side], frames, 0.0)
+    assert len(one) == 1 and len(two) == 1
+    for track in (one[0], two[0]):
+        assert _inside(track.shape, [truth]) == 1.0
+    depth_one = np.ptp(shapes.enclosing_vertices(one[0].shape)[:, 0])
+    depth_two = np.ptp(shapes.enclosing_vertices(two[0].shape)[:, 0])
+    assert depth_one >= CONFIG.max_thickness_m["box"]  # the prior bounds what is unseen
+    assert depth_two < 0.06 + 0.04 < depth_one
+    assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
