@@ -112,8 +112,9 @@ class JointLimits:
         ``upper`` is slightly negative: libfranka then only lets the joint move away.
         """
         q = np.asarray(q, dtype=float)
-        if self.curve is None:
-            upper = np.broadcast_to(self.velocity, q.shape).copy()
+        if self.curve is None:  # one state is the 1 kHz loops' case: no broadcast (~20 us)
+            upper = (self.velocity.copy() if q.shape == self.velocity.shape
+                     else np.broadcast_to(self.velocity, q.shape).copy())
             return -upper, upper
         c, vmax = self.curve, self.velocity / self.velocity_scale  # the unscaled vmax
         up_room = np.sqrt(np.maximum(0.0, c.k * (c.p_up - q)))

@@ -9,7 +9,7 @@ import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from damon_ros.ros.environment import limit_threads
+from damon_ros.ros.environment import keep_freed_memory, limit_threads
 from damon_ros.ros.launch import exit_with_parent
 from damon_ros.ros.parameters import Param, print_help
 
@@ -83,6 +83,7 @@ def node_main(name: str, description: str, parameters: Sequence[Param],
             print(f"\n{extra_help}")
         return 0
     limit_threads()
+    keep_freed_memory()  # a refusal changes nothing but speed: nothing to report
     exit_with_parent()
     try:
         return run_single_threaded(node_factory, argv)

@@ -262,3 +262,14 @@ def test_renders_a_three_obstacle_frame_faster_than_the_camera_rate():
     for _ in range(20):
         render(camera, scene, 0.002, 0.01, rng)
     assert (time.process_time() - start) / 20 < 1.0 / 30.0
+
+
+def test_consecutive_frames_have_uncorrelated_depth_noise():
+    """The noise comes from a pool read at random offsets: pixel by pixel, one frame's
+    noise says nothing about the next one's."""
+    camera = load_camera()
+    rng = np.random.default_rng(3)
+    noise = [render(camera, [], 0.004, 0.0, rng)[1].astype(float) - 3500.0 for _ in range(3)]
+    for a, b in ((noise[0], noise[1]), (noise[1], noise[2])):
+        assert not np.array_equal(a, b)
+        assert abs(np.corrcoef(a.ravel(), b.ravel())[0, 1]) < 0.02
