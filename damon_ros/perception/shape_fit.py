@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
 from damon_ros.perception.segmentation import Blob
-from damon_ros.perception.tight_fit import fit_box, hull_points
+from damon_ros.perception.tight_fit import fit_box, fit_cylinder, hull_points
 from damon_ros.perception.tracker_config import TrackerConfig
 
 MAD_TO_SIGMA = 1.4826
@@ -190,9 +190,13 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
     if config.shape == "auto" and not partial:
         # What is fully in view gets a tight shape (tight_fit); a cut-off blob keeps the
         # view-extended bound below, which does not rely on having seen the silhouette.
-        box = fit_box(camera, points @ R.T + t, config, name)
+        base = points @ R.T + t
+        box = fit_box(camera, base, config, name)
         if box is not None:
             return Estimate(box.shape, False)
+        cylinder = fit_cylinder(camera, base, config, name)
+        if cylinder is not None:
+            return Estimate(cylinder, False)
         return Estimate(hull_points(camera, points, config, name), False)
     ranges = np.sqrt((points_t * points_t).sum(axis=0))
     far = local * (1.0 + width / ranges)  # each point pushed back along its ray by width

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
@@ -189,3 +190,122 @@ def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfi
     base = grown @ camera.rotation.T + camera.position
     centre = base.mean(axis=0)
     return Shape("points", (), centre, points=base - centre, name=name)
+
+
+CYLINDER_SHARE = 0.92
+"""A blob is a cylinder when this share of its points lie on the fitted side or on an end."""
+MIN_ARC_RAD = 1.2
+"""The side must be seen over at least this arc (rad) for its circle to fix the axis."""
+FIT_SIGMAS = 4.0
+"""The side is bounded this many fit residuals (rms) beyond the farthest point, against a
+circle that the noisy arc places too near the camera."""
+AXIS_STEPS_RAD = (0.08, 0.02, 0.005)
+"""The axis is searched on 5 x 5 grids of tilts about the principal direction, each this
+step, around the best of the previous one; the last step bounds its error."""
+MAX_FIT_POINTS = 400
+
+
+def _fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """Least-squares circle (centre, radius, rms of |p - c| - r) through 2-D points."""
+    a = np.column_stack([2.0 * xy, np.ones(len(xy))])
+    sol, *_ = np.linalg.lstsq(a, (xy * xy).sum(axis=1), rcond=None)
+    centre = sol[:2]
+    r2 = float(sol[2] + centre @ centre)
+    if not r2 > 0.0:
+        return None
+    radius = math.sqrt(r2)
+    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - radius) ** 2)))
+    return centre, radius, rms
+
+
+def _refine_circle(xy: np.ndarray, centre: np.ndarray, radius: float,
+                   iterations: int = 5) -> tuple[np.ndarray, float, float]:
+    """Geometric circle fit (Gauss-Newton on |p - c| - r) from an algebraic start: the
+    algebraic fit of a short noisy arc comes out several millimetres too small."""
+    for _ in range(iterations):
+        diff = xy - centre
+        dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+        jac = np.column_stack([-diff / dist[:, None], -np.ones(len(xy))])
+        step, *_ = np.linalg.lstsq(jac, -(dist - radius), rcond=None)
+        centre, radius = centre + step[:2], radius + float(step[2])
+    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - radius) ** 2)))
+    return centre, radius, rms
+
+
+def _frame(axis: np.ndarray) -> np.ndarray:
+    """Columns u, v, axis: a right-handed frame whose third axis is ``axis``."""
+    axis = axis / np.linalg.norm(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    return np.column_stack([u, np.cross(axis, u), axis])
+
+
+def _best_axis(points: np.ndarray) -> tuple[np.ndarray, tuple] | None:
+    """The axis (frame) whose cross-section of ``points`` is the roundest, and its circle."""
+    centred = points - points.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    frame, best = _frame(vectors[:, 2]), None  # start: the principal direction
+    for step in AXIS_STEPS_RAD:
+        base, found = frame, None
+        for a in np.arange(-2, 3) * step:
+            for b in np.arange(-2, 3) * step:
+                candidate = _frame(base @ np.array([math.tan(a), math.tan(b), 1.0]))
+                circle = _fit_circle(centred @ candidate[:, :2])
+                if circle is not None and (found is None or circle[2] < found[1][2]):
+                    found = (candidate, circle)
+        if found is None:
+            return None
+        frame, best = found
+    return frame, best
+
+
+def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
+                 name: str = "") -> Shape | None:
+    """The cylinder of base-frame ``points`` (N x 3), any axis, or None when they are none.
+
+    Its axis is the direction across which the points are most nearly a circle's arc (a
+    grid search about their principal direction); the arc must span `MIN_ARC_RAD` and face
+    the camera. The radius reaches the farthest point, plus `FIT_SIGMAS` residuals, plus
+    what the last axis step can tilt over half the length; the length is what was seen,
+    grown by a sample at each end (the side is seen to its ends, the end faces need not be).
+    """
+    if len(points) < config.min_points:
+        return None
+    sample = points[::max(1, len(points) // MAX_FIT_POINTS)]
+    found = _best_axis(sample)
+    if found is None:
+        return None
+    frame, (centre2, radius, rms) = found
+    mean = sample.mean(axis=0)
+    local = (points - mean) @ frame
+    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
+    tol = config.face_tolerance_m
+    # the side alone (end-face points lie inside the circle), fitted geometrically
+    side_points = np.abs(dist - radius) <= max(2.0 * rms, 0.25 * tol)
+    if side_points.sum() < config.min_points:
+        return None
+    centre2, radius, rms = _refine_circle(local[side_points, :2], centre2, radius)
+    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
+    on_side = np.abs(dist - radius) <= tol
+    ends = np.percentile(local[:, 2], [1.0, 99.0])
+    on_end = (np.abs(local[:, 2:3] - ends).min(axis=1) <= tol) & (dist <= radius + tol)
+    if (on_side | on_end).mean() < CYLINDER_SHARE or rms > 0.5 * tol:
+        return None
+    eye = (camera.position - mean) @ frame
+    toward = eye[:2] - centre2
+    if np.linalg.norm(toward) <= radius:
+        return None  # the camera would be inside it
+    side = local[on_side, :2] - centre2
+    angles = np.arctan2(side[:, 1], side[:, 0])
+    facing = np.cos(angles - math.atan2(toward[1], toward[0]))
+    if float(np.ptp(angles)) < MIN_ARC_RAD or np.mean(facing > 0.0) < 0.95:
+        return None  # too little arc to fix the axis, or a hollow seen from inside
+    low, high = float(local[:, 2].min()), float(local[:, 2].max())
+    depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
+    edge = spacing_m(camera, config, depth) * MAX_OBLIQUITY + config.surface_margin_m
+    tilt = AXIS_STEPS_RAD[-1] * 0.5 * (high - low)
+    bound = float(dist.max()) + FIT_SIGMAS * rms + tilt + config.surface_margin_m
+    centre = mean + frame @ np.array([*centre2, 0.5 * (low + high)])
+    q = Rotation.from_matrix(frame).as_quat()
+    return Shape("cylinder", (bound, high - low + 2.0 * edge), centre, q, name=name)

@@ -54,7 +54,7 @@ class TrackerConfig:
     shape: str = "sphere"
     inflation_m: float = 0.015
     sphere_rms_ratio: float = 0.03
-    sphere_rms_floor_m: float = 0.006
+    sphere_rms_floor_m: float = 0.003
     sphere_width_ratio: float = 0.25
     gate_m: float = 0.15
     max_age_s: float = 0.5
