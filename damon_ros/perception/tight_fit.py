@@ -1,4 +1,5 @@
-"""Tight shapes from the visible surface: an upright box from its faces, or a hull.
+"""Tight shapes from the visible surface: an upright box from its faces, a cylinder from
+its side, or a hull.
 
 The view-extended bound of :mod:`damon_ros.perception.shape_fit` assumes every obstacle is as
 deep as it is wide, which swallows goals near thin boxes. Here what the camera shows is used
@@ -10,8 +11,10 @@ instead, and only what it cannot show is bounded by a prior:
   it faces the camera. The extent along an axis is *seen* when a face parallel to that axis
   is visible (such a face spans the axis completely); otherwise only the front face is
   known and the box is extended behind it to the class's ``max_thickness_m``.
-* **blob** (:func:`hull_points`): anything that fits no primitive (an L-shaped tool, a tilted
-  cylinder) becomes the convex hull of its visible points together with the same points
+* **cylinder** (:func:`fit_cylinder`): any axis; the side's points are an arc of a circle
+  across it, the side is seen to both ends, the hidden back is the circle's other half.
+* **blob** (:func:`hull_points`): anything that fits no primitive (an L-shaped tool, a
+  cylinder seen end-on) becomes the convex hull of its visible points together with the same points
   pushed back along their rays by the blob prior: every hidden part of the object lies on a
   ray through the silhouette, behind the visible surface and (by the prior) within that
   depth of it.
