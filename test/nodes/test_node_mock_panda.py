@@ -186,18 +186,14 @@ def test_stops_when_commands_go_stale(graph: Graph, tmp_path: Path):
         graph.ros.spin_for(0.3)
     finally:
         rosutil.stop_node(commander, first_signal=signal.SIGKILL)
-    # Publication time of the last command this process saw: on a loaded machine it may
-    # have missed the very last ones, so `last` can only be early, never late.
-    last = graph.commands_seen.sources[-1]
+    last = graph.commands_seen.sources[-1]  # publication time of the last command
     states = graph.states.published_after(last - 0.2)
-    fast = next(t for t, m in states if m.velocity[0] > 0.29)  # up to speed
-    before = [m.velocity[0] for t, m in states if fast <= t < last + 0.6 * TIMEOUT_S]
+    before = [m.velocity[0] for t, m in states if t < last + 0.6 * TIMEOUT_S]
     # Still moving until the timeout: the last command holds for command_timeout_s ...
-    assert len(before) > 10 and min(before) > 0.25, min(before)
-    # ... then braking: first-order decay (tau 20 ms) within the acceleration limit (the
-    # upper bound allows for an early `last`).
+    assert len(before) > 50 and min(before) > 0.25, min(before)
+    # ... then braking: first-order decay (tau 20 ms) within the acceleration limit.
     stopped = next(t for t, m in states if t > last and abs(m.velocity[0]) < 1e-3)
-    assert TIMEOUT_S < stopped - last < TIMEOUT_S + 1.0, stopped - last
+    assert TIMEOUT_S < stopped - last < TIMEOUT_S + 0.3, stopped - last
     rest = [m.position[0] for t, m in states if t > stopped + 0.05]
     assert len(rest) > 50 and max(rest) - min(rest) < 1e-3  # and it stays at rest
     lines = rosutil.log_lines(graph.proc, "no joint command")
