@@ -186,7 +186,13 @@ def test_stops_when_commands_go_stale(graph: Graph, tmp_path: Path):
         graph.ros.spin_for(0.3)
     finally:
         rosutil.stop_node(commander, first_signal=signal.SIGKILL)
-    last = graph.commands_seen.sources[-1]  # publication time of the last command
+    lines = rosutil.log_lines(graph.proc, "no joint command")
+    assert len(lines) == stale_lines + 1, lines  # once per episode
+    # When mock_panda's own last command turned stale: the line is logged in that tick. Not
+    # the last command this process recorded: a commander frozen mid-send delivers its final
+    # messages to one reader and not the other (seen both ways, 20-40 ms apart).
+    braking = rosutil.log_time(lines[-1])
+    last = braking - TIMEOUT_S  # mock_panda's last command, to within one tick
     states = graph.states.published_after(last - 0.2)
     before = [m.velocity[0] for t, m in states if t < last + 0.6 * TIMEOUT_S]
     # Still moving until the timeout: the last command holds for command_timeout_s ...
@@ -196,8 +202,6 @@ def test_stops_when_commands_go_stale(graph: Graph, tmp_path: Path):
     assert TIMEOUT_S < stopped - last < TIMEOUT_S + 0.3, stopped - last
     rest = [m.position[0] for t, m in states if t > stopped + 0.05]
     assert len(rest) > 50 and max(rest) - min(rest) < 1e-3  # and it stays at rest
-    lines = rosutil.log_lines(graph.proc, "no joint command")
-    assert len(lines) == stale_lines + 1, lines  # once per episode
 
 
 def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
@@ -287,9 +291,10 @@ def test_shared_memory_profile_carries_camera_images():
                                                 rate_hz=30.0, timeout_s=20.0)
              for shm in (True, False)}
     assert stats[True]["received"] >= 25, stats
-    # ~2-4 ms against ~14 ms on a quiet machine; compared with each other, not with a
-    # number, because a loaded machine's scheduling stretches both (CI: 10 ms with SHM)
-    assert stats[True]["median_ms"] < stats[False]["median_ms"], stats
+    # p90 ~5 ms against ~14 ms on a quiet machine; compared with each other, not with a
+    # number, because a loaded machine's scheduling stretches both (CI: 10 ms with SHM).
+    # Not the medians: UDP's times are bimodal, a quiet run once had its median at 3.4 ms.
+    assert stats[True]["p90_ms"] < stats[False]["p90_ms"], stats
 
 
 def test_runs_with_its_defaults(tmp_path: Path):
