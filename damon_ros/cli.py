@@ -33,6 +33,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                "write docs/BENCHMARKS.md from bench result files"),
     "soak": ("damon_ros.tools.soak", "main",
              "all nodes for N minutes: throughput, latency, memory, contacts, limits"),
+    "scenarios": ("damon_ros.tools.scenarios", "main",
+                  "generate fresh scenario files like the public families (held-out sets)"),
     "bench-tracker": ("damon_ros.tools.bench_tracker", "main",
                       "the tracker against ground truth: containment, volume excess, errors"),
     "bench-robot": (

@@ -51,8 +51,16 @@ def _edges_free(args) -> np.ndarray:
 def _parallel(fn, chunks, workers: int, desc: str, progress: bool) -> list:
     from tqdm import tqdm
 
-    with mp.get_context("fork").Pool(workers) as pool:
-        return list(tqdm(pool.imap(fn, chunks), total=len(chunks), desc=desc, disable=not progress))
+    pool = mp.get_context("fork").Pool(workers)
+    try:
+        out = list(tqdm(pool.imap(fn, chunks), total=len(chunks), desc=desc,
+                        disable=not progress))
+    except BaseException:
+        pool.terminate()
+        raise
+    pool.close()  # not terminate(): its SIGTERM reached the CLI's handler in every worker
+    pool.join()
+    return out
 
 
 def prune_self_colliding_edges(graph: LatentGraph, workers: int, progress: bool) -> int:

@@ -1,24 +1,28 @@
-"""``damon-ros analyze``: module 3 of the paper as a tool — GMR runtime model and the N sweep.
+"""``damon-ros analyze``: module 3 of the paper as a tool — the runtime model and the N sweep.
 
-For each graph size N it builds the graph from the same data and VAE, runs every given
-scenario in closed loop, and compares what happened with what the GMR predicts:
+For each graph size N it builds the graph from the same data and VAE and runs generated
+tasks (``damon-ros scenarios``' families, a seed of their own) in closed loop on an engine
+(local processes or Ray). Two disjoint task sets are used:
 
-- rerouting probability: measured = share of route steps (initial plan + re-routes) that
-  had to be re-routed; predicted = 1 − Π(1 − p_i) over the waypoints of the initial route,
-  p_i = P(d ≤ λ | z_i) from the GMR at each waypoint's latent point;
-- task time T: measured = simulated total time; predicted = Σ t_p/(1 − p_i) + t_r,i with
-  t_p the measured mean planning time at that N and t_r,i each segment's motion time.
+- **fit tasks** fit what the model needs from the scenes the planner meets: the GMR
+  p(d ≤ λ | z) on every planned waypoint (its clearance to the obstacles as they move until
+  the arm has passed it, :func:`runtime_model.threat_distances`), and the runtime model's
+  κ, t_0, c_r (:class:`runtime_model.RuntimeModel`), with t_p measured per size;
+- **validation tasks** (≥ 100 per size by default) are predicted from their first planned
+  route *before* they run, then run: T and the re-route probability, predicted vs measured,
+  and the expected calibration error of p(collision) on their waypoints (held-out vertices).
 
-N* is the N with the lowest mean measured T. Tables are printed; the paper's plots are
-written as PNG files (latent manifold coloured by flag, graph with a routed path, rerouting
-probability and T against N predicted vs measured, reliability curve of p(collision)).
+N* is picked twice — by the lowest predicted T and by the lowest measured T (at the best
+measured success). Tables are printed; the paper's plots are written as PNG files.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,80 +30,70 @@ import numpy as np
 
 from damon_ros.learning.graph import GraphBuildConfig
 
-
-def _route_prediction(model_gmr, codec, robot, result, scene_now, t_plan: float):
-    """(predicted rerouting probability, predicted T) of a planned route."""
-    from damon_ros.learning.gmr import predicted_runtime
-
-    path = result.path
-    rows = []
-    for q in path:
-        c = robot.clearance(q, scene_now) if scene_now else None
-        point = c.obstacle_point if c is not None else np.zeros(3)
-        rows.append(np.concatenate([q, point, [0.0]]))
-    p = model_gmr.collision_probability(codec.encode(np.array(rows)))
-    seg_times = np.diff([0.0] + _segment_ends(result.trajectory, path))
-    p_steps = p[1:] if len(p) > 1 else p
-    return 1.0 - float(np.prod(1.0 - p_steps)), predicted_runtime(p_steps, t_plan, seg_times)
+THREAT_CLIP_M = 0.15
+STEP_S = 0.25  # s of planned motion between the steps of a route
+GMR_COMPONENTS = (1, 2, 4, 8)  # chosen by held-out log-loss on the fit tasks
 
 
-def _segment_ends(trajectory, path: np.ndarray) -> list[float]:
-    """Times at which the trajectory passes each waypoint after the first."""
-    ends = []
-    for q in path[1:]:
-        d = np.max(np.abs(trajectory.positions - q), axis=1)
-        ends.append(float(trajectory.times[int(np.argmin(d))]))
-    return ends
+# ---- one task, on a worker ----------------------------------------------------------
+class _TaskState:
+    """Per worker: the two robot models and the graphs loaded so far (by file)."""
+
+    def __init__(self) -> None:
+        from damon_ros.core.robot import Robot
+
+        self.fast, self.mesh = Robot("fast"), Robot("mesh")
+        self.graphs: dict[str, object] = {}
+
+    def graph(self, path: str):
+        from damon_ros.learning.graph import LatentGraph
+
+        if path not in self.graphs:
+            self.graphs = {path: LatentGraph.load(path)}  # one size at a time is enough
+        return self.graphs[path]
 
 
-def sweep(data, data_meta, codec, gmr_components: int, margin: float, sizes: list[int],
-          scenarios, grid: int, workers: int, seed: int, progress: bool) -> list[dict]:
-    from damon_ros.core.robot import Robot
-    from damon_ros.learning.gmr import CollisionGMR
-    from damon_ros.learning.graph_builder import build_model_graph
+def _task_setup() -> _TaskState:
+    return _TaskState()
+
+
+def _task_run(state: _TaskState, job: dict) -> dict:
+    """Plan the task's first route (the prediction's input), then run it in closed loop."""
+    from damon_ros.core.scenario import load_scenario
+    from damon_ros.learning.runtime_model import threat_distances
     from damon_ros.planning.graph_planner import GraphPlanner
-    from damon_ros.planning.reactive import ReactivePlanner
+    from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
     from damon_ros.simulation.closed_loop import SimConfig, run_scenario
 
-    fast, mesh = Robot("fast"), Robot("mesh")
-    rows = []
-    for n in sizes:
-        config = GraphBuildConfig(n_vertices=n, grid_size=grid, seed=seed)
-        graph, stats = build_model_graph(data, data_meta, codec, config, workers, progress)
-        keep = graph.distance > -0.5
-        gmr = CollisionGMR.fit(graph.z[keep], graph.distance[keep], gmr_components, margin, seed)
-        measured_t, predicted_t, measured_r, predicted_r, plan_ms, success = [], [], [], [], [], []
-        for scenario in scenarios:
-            planner = GraphPlanner(graph, fast, fast.limits)
-            planner.warm_up()
-            runtime = ReactivePlanner(planner)
-            record = run_scenario(scenario, runtime, "damon", mesh, fast, SimConfig(seed=seed))
-            success.append(record.success)
-            plan_ms.append(record.planning_time_s * 1e3)
-            steps = 1 + record.replans
-            measured_r.append(record.replans / steps)
-            if record.success:
-                measured_t.append(record.total_time_s)
-            first = GraphPlanner(graph, fast, fast.limits).plan(
-                scenario.start, _goal(scenario), scenario.obstacles_at(0.0))
-            if first.success:
-                r, t = _route_prediction(gmr, codec, fast, first, scenario.obstacles_at(0.0),
-                                         record.planning_time_s)
-                predicted_r.append(r)
-                predicted_t.append(t)
-        rows.append({
-            "N": n, "vertices": graph.n_vertices, "edges": graph.n_edges,
-            "success": float(np.mean(success)),
-            "reroute_measured": float(np.mean(measured_r)),
-            "reroute_predicted": float(np.mean(predicted_r)) if predicted_r else float("nan"),
-            "T_measured": float(np.mean(measured_t)) if measured_t else float("nan"),
-            "T_predicted": float(np.mean(predicted_t)) if predicted_t else float("nan"),
-            "plan_ms_median": float(np.median(plan_ms)),
-            "largest_component_share": stats["largest_component_share"],
-        })
-        if progress:
-            print(json.dumps(rows[-1]), file=sys.stderr)
-    return rows
+    scenario = load_scenario(job["scenario"])
+    graph, fast = state.graph(job["graph"]), state.fast
+    planner = GraphPlanner(graph, fast, fast.limits)
+    planner.warm_up()
+    record = run_scenario(scenario, ReactivePlanner(planner), "damon", state.mesh, fast,
+                          SimConfig(seed=job["seed"]))
+    out = {k: job[k] for k in ("size", "split", "scenario")}
+    out.update(success=bool(record.success), T=record.total_time_s, replans=record.replans,
+               plan_s=record.planning_time_s, planned=False)
+    scene = scenario.obstacles_at(0.0)
+    first = GraphPlanner(graph, fast, fast.limits).plan(scenario.start, _goal(scenario), scene)
+    if not first.success or first.trajectory is None:
+        return out
+    steps, passed = _route_steps(first.trajectory, record.planning_time_s)
+    points = [fast.clearance(q, scene).obstacle_point if scene else np.zeros(3) for q in steps]
+    threat = threat_distances(lambda Q, t: fast.distances(Q, scenario.obstacles_at(t)),
+                              steps, passed, RuntimeConfig().prediction_horizon_s)
+    out.update(planned=True, duration=float(first.trajectory.times[-1]),
+               rows=[[*q, *p, 0.0] for q, p in zip(steps.tolist(), points, strict=True)],
+               threat=threat.tolist())
+    return out
+
+
+def _route_steps(trajectory, start_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The route's steps: its configurations every STEP_S of planned motion after the start
+    (a shortcut route has only a few waypoints, and an obstacle can cross between them),
+    with the times the arm passes them (the first plan starts after ``start_s``)."""
+    times = np.append(np.arange(STEP_S, trajectory.duration, STEP_S), trajectory.duration)
+    return np.array([trajectory.sample(float(t))[0] for t in times]), start_s + times
 
 
 def _goal(scenario):
@@ -109,19 +103,152 @@ def _goal(scenario):
     return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
 
 
+# ---- the driver ---------------------------------------------------------------------
+def generate_tasks(out: Path, families: str, count: int, seed: int) -> list[Path]:
+    """``count`` generated task files spread over ``families`` (kept if already there)."""
+    from damon_ros.core.robot import Robot
+    from damon_ros.simulation.scenario_generation import ScenarioGenerator, generate_family
+
+    out.mkdir(parents=True, exist_ok=True)
+    generator, files = ScenarioGenerator(Robot("mesh")), []
+    per_family = [count // len(families) + (i < count % len(families))
+                  for i in range(len(families))]
+    for family, n in zip(families, per_family, strict=True):
+        for item in generate_family(generator, family, n, seed):
+            path = out / f"{item.scenario.name}.yaml"
+            if not path.exists():
+                path.write_text(item.yaml(), encoding="utf-8")
+            files.append(path)
+    return files
+
+
+def run_tasks(engine, graphs: dict[int, str], fit: list[Path], validate: list[Path],
+              seed: int, progress: bool) -> list[dict]:
+    """Every task at every size on ``engine``; results in arrival order."""
+    from tqdm import tqdm
+
+    from damon_ros.learning.engines import Work
+
+    jobs = [{"size": n, "graph": graphs[n], "split": split, "scenario": str(f), "seed": seed}
+            for n in graphs for split, files in (("fit", fit), ("validate", validate))
+            for f in files]
+    work = Work(_task_setup, (), _task_run)
+    return list(tqdm(engine.map(work, jobs), total=len(jobs), desc="closed-loop tasks",
+                     unit="task", disable=not progress))
+
+
+def _split_fit(fit: list[dict], seed: int) -> tuple[list[dict], list[dict]]:
+    order = np.random.default_rng(seed).permutation(len(fit))
+    half = len(fit) // 2
+    return [fit[i] for i in order[:half]], [fit[i] for i in order[half:]]
+
+
+def _stack(tasks: list[dict], codec) -> tuple[np.ndarray, np.ndarray]:
+    z = codec.encode(np.concatenate([np.array(r["rows"]) for r in tasks]))
+    return z, np.concatenate([r["threat"] for r in tasks])
+
+
+def fit_gmr(fit: list[dict], codec, margin: float, seed: int):
+    """The GMR on the fit tasks' steps, its component count chosen by the log-loss of the
+    event d ≤ λ on half of the fit tasks held out from a fit on the other half."""
+    from damon_ros.learning.gmr import CollisionGMR
+    from damon_ros.learning.runtime_model import log_loss
+
+    # the GMR only has to get P(d ≤ λ) right: distances far beyond λ are clipped, so the
+    # components describe the near range instead of the long tail of distant steps
+    a, b = _split_fit(fit, seed)
+    za, da = _stack(a, codec)
+    zb, db = _stack(b, codec)
+    scores = {k: log_loss(CollisionGMR.fit(za, np.minimum(da, THREAT_CLIP_M), k, margin, seed)
+                          .collision_probability(zb), db <= margin)
+              for k in GMR_COMPONENTS if k <= len(za) // 10}
+    best = min(scores, key=scores.get) if scores else 1
+    z, d = _stack(fit, codec)
+    return CollisionGMR.fit(z, np.minimum(d, THREAT_CLIP_M), best, margin, seed), best
+
+
+def fit_models(results: list[dict], codec, margin: float, seed: int):
+    """(GMR, its component count, route calibration, runtime model, t_p per size), all from
+    the fit tasks."""
+    from damon_ros.learning.runtime_model import (
+        RouteCalibration,
+        RuntimeModel,
+        expected_reroutes,
+        route_risk,
+    )
+
+    fit = [r for r in results if r["split"] == "fit" and r["planned"]]
+    if len(fit) < 4:
+        raise ValueError(f"only {len(fit)} fit tasks could be planned: too few to fit on")
+    gmr, components = fit_gmr(fit, codec, margin, seed)
+    for r in fit:
+        r["risk"] = route_risk(gmr.collision_probability(codec.encode(np.array(r["rows"]))))
+    calibration = RouteCalibration.fit([r["risk"] for r in fit], [r["replans"] > 0 for r in fit])
+    t_plan = {n: float(np.mean([r["plan_s"] for r in results
+                                if r["split"] == "fit" and r["size"] == n]))
+              for n in {r["size"] for r in results}}
+    ok = [r for r in fit if r["success"]]
+    model = RuntimeModel.fit([t_plan[r["size"]] for r in ok], [r["duration"] for r in ok],
+                             [expected_reroutes(calibration(r["risk"])) for r in ok],
+                             [r["T"] for r in ok])
+    return gmr, components, calibration, model, t_plan
+
+
+def sweep_rows(results: list[dict], codec, gmr, calibration, model,
+               t_plan: dict[int, float], graph_stats: dict[int, dict], margin: float):
+    """Per size: measured vs predicted on the validation tasks; and the calibration error
+    of p(collision) on all their steps (held-out vertices)."""
+    from damon_ros.learning.gmr import reliability
+    from damon_ros.learning.runtime_model import expected_reroutes, route_risk
+
+    rows, p_all, hit_all = [], [], []
+    for n in sorted(t_plan):
+        tasks = [r for r in results if r["split"] == "validate" and r["size"] == n]
+        planned = [r for r in tasks if r["planned"]]
+        for r in planned:
+            p = gmr.collision_probability(codec.encode(np.array(r["rows"])))
+            r["reroute_p"] = calibration(route_risk(p))
+            p_all.append(p)
+            hit_all.append(np.array(r["threat"]) <= margin)
+        done = [r for r in planned if r["success"]]
+        t_pred = [model.predict(t_plan[n], r["duration"], expected_reroutes(r["reroute_p"]))
+                  for r in done]
+        rows.append({
+            "N": n, **graph_stats[n], "tasks": len(tasks),
+            "success": float(np.mean([r["success"] for r in tasks])) if tasks else math.nan,
+            "reroute_measured": _mean([r["replans"] > 0 for r in planned]),
+            "reroute_predicted": _mean([r["reroute_p"] for r in planned]),
+            "T_measured": _mean([r["T"] for r in done]),
+            "T_predicted": _mean(t_pred),
+            "t_plan_ms": 1e3 * t_plan[n],
+            "plan_ms_median": float(np.median([1e3 * r["plan_s"] for r in tasks])),
+        })
+    p_all = np.concatenate(p_all) if p_all else np.zeros(0)
+    hit_all = np.concatenate(hit_all) if hit_all else np.zeros(0, bool)
+    error = reliability(p_all, hit_all)[1] if len(p_all) else math.nan
+    return rows, error, (p_all, hit_all)
+
+
+def _mean(values) -> float:
+    return float(np.mean(values)) if len(values) else math.nan
+
+
 def print_table(rows: list[dict]) -> None:
-    header = ("N", "vertices", "success", "reroute meas.", "reroute pred.", "T meas. (s)",
-              "T pred. (s)", "plan ms p50")
+    header = ("N", "vertices", "tasks", "success", "reroute meas.", "reroute pred.",
+              "T meas. (s)", "T pred. (s)", "T error", "plan ms p50")
     print(" | ".join(header))
     for r in rows:
-        print(" | ".join([f"{r['N']}", f"{r['vertices']}", f"{100 * r['success']:.0f} %",
+        err = abs(r["T_predicted"] - r["T_measured"]) / r["T_measured"]
+        print(" | ".join([f"{r['N']}", f"{r['vertices']}", f"{r['tasks']}",
+                          f"{100 * r['success']:.0f} %",
                           f"{r['reroute_measured']:.3f}", f"{r['reroute_predicted']:.3f}",
                           f"{r['T_measured']:.2f}", f"{r['T_predicted']:.2f}",
-                          f"{r['plan_ms_median']:.1f}"]))
+                          f"{100 * err:.1f} %", f"{r['plan_ms_median']:.1f}"]))
 
 
-def plots(out: Path, codec, data, rows: list[dict], graph, gmr, margin: float) -> list[Path]:
-    """The paper's figures, from this project's own data."""
+def plots(out: Path, codec, data, rows: list[dict], graph, calibration) -> list[Path]:
+    """The paper's figures, from this project's own data; ``calibration`` is the
+    (prediction, outcome) pairs of the reliability curve."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,6 +297,7 @@ def plots(out: Path, codec, data, rows: list[dict], graph, gmr, margin: float) -
         fig, axes = plt.subplots(1, 2, figsize=(10, 4))
         axes[0].plot(n, [r["reroute_measured"] for r in rows], "o-", label="measured")
         axes[0].plot(n, [r["reroute_predicted"] for r in rows], "s--", label="predicted (GMR)")
+        axes[0].set_ylim(0.0, 1.0)
         axes[0].set(xscale="log", xlabel="graph size N", ylabel="rerouting probability")
         axes[1].plot(n, [r["T_measured"] for r in rows], "o-", label="measured")
         axes[1].plot(n, [r["T_predicted"] for r in rows], "s--", label="predicted (GMR)")
@@ -181,16 +309,12 @@ def plots(out: Path, codec, data, rows: list[dict], graph, gmr, margin: float) -
         fig.savefig(files[-1], dpi=120)
         plt.close(fig)
 
-    p = gmr.collision_probability(z)
-    near = data["distance"][idx] <= margin
-    table, error = reliability(p, near)
-    print(f"p(collision) calibration on {len(p)} samples: mean |predicted - observed| per "
-          f"bin {error:.3f}")
+    table, error = reliability(*calibration)
     fig, ax = plt.subplots(figsize=(5, 5))
     ax.plot([0, 1], [0, 1], "k:", label="perfect")
-    ax.plot(table[:, 0], table[:, 1], "o-", label=f"GMR (mean abs. error {error:.3f})")
+    ax.plot(table[:, 0], table[:, 1], "o-", label=f"GMR (calibration error {error:.3f})")
     ax.set(xlabel="predicted P(d ≤ λ | z)", ylabel="observed frequency",
-           title="Reliability of p(collision)")
+           title="Reliability of p(collision), held-out task waypoints")
     ax.legend()
     files.append(out / "reliability.png")
     fig.savefig(files[-1], dpi=120)
@@ -198,51 +322,128 @@ def plots(out: Path, codec, data, rows: list[dict], graph, gmr, margin: float) -
     return files
 
 
-def main(argv: list[str] | None = None) -> int:
-    from damon_ros.core.resources import public_scenarios_dir
-    from damon_ros.core.scenario import ScenarioError, load_scenario, scenario_files
-    from damon_ros.learning.bundle import DamonModel, ModelError
-    from damon_ros.learning.dataset import load_dataset
+def _sample_calibration(data, codec, gmr, margin: float) -> float:
+    """The shipped GMR (fitted on graph vertices against point obstacles) judged on 20,000
+    collection samples: how well it describes the data it was built from."""
+    from damon_ros.learning.gmr import reliability
+    from damon_ros.learning.vae_training import rows_from
+
+    rng = np.random.default_rng(1)
+    idx = rng.choice(len(data["q"]), size=min(20000, len(data["q"])), replace=False)
+    z = codec.encode(rows_from({k: v[idx] for k, v in data.items()}))
+    return reliability(gmr.collision_probability(z), data["distance"][idx] <= margin)[1]
+
+
+def _parser() -> argparse.ArgumentParser:
+    from damon_ros.learning.engines import ENGINES
+    from damon_ros.simulation.scenario_generation import FAMILIES
 
     parser = argparse.ArgumentParser(prog="damon-ros analyze",
                                      description="GMR runtime model and the graph-size sweep.")
     parser.add_argument("--data", required=True, help="directory written by damon-ros collect")
     parser.add_argument("--model", default=None, help="model directory (default: shipped)")
-    parser.add_argument("--sizes", default="2000,5000,10000,20000",
-                        help="comma-separated graph sizes N to sweep ('' = no sweep)")
-    parser.add_argument("--scenarios", nargs="*", default=None,
-                        help="scenario files or folders (default: the public scenarios)")
+    parser.add_argument("--sizes", default="5000,10000,20000,40000",
+                        help="comma-separated graph sizes N to sweep")
+    parser.add_argument("--tasks", type=int, default=105,
+                        help="validation tasks per size (generated, spread over --families)")
+    parser.add_argument("--fit-tasks", type=int, default=49,
+                        help="fit tasks per size (another seed: never a validation task)")
+    parser.add_argument("--families", default="".join(FAMILIES), help="task families")
+    parser.add_argument("--task-seed", type=int, default=16,
+                        help="validation tasks' seed (fit tasks use seed + 1000)")
     parser.add_argument("--grid", type=int, default=GraphBuildConfig.grid_size)
-    parser.add_argument("--out", default="analysis", help="folder for plots and results.json")
+    parser.add_argument("--out", default="analysis",
+                        help="folder for plots, results.json and the task files")
+    parser.add_argument("--engine", choices=ENGINES, default="local")
+    parser.add_argument("--address", default=None, help="with --engine ray: the cluster")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from damon_ros.learning.bundle import DamonModel, ModelError
+    from damon_ros.learning.dataset import load_dataset
+    from damon_ros.learning.engines import EngineError, make_engine
+    from damon_ros.learning.graph_builder import build_model_graph
+    from damon_ros.planning.graph_planner import PlannerConfig
+
+    args = _parser().parse_args(argv)
+    t0, progress = time.perf_counter(), not args.quiet
     try:
+        sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+        if not sizes or min(sizes) < 1 or args.tasks < 1 or args.fit_tasks < 3:
+            raise ValueError("need sizes >= 1, --tasks >= 1 and --fit-tasks >= 3")
         model = DamonModel.load(args.model)
         data, data_meta = load_dataset(args.data)
-        scenarios = [load_scenario(f) for f in scenario_files(
-            args.scenarios or [public_scenarios_dir()])]
-    except (ModelError, ValueError, ScenarioError) as exc:
+        engine = make_engine(args.engine, args.workers, args.address)
+    except (ModelError, ValueError) as exc:
         print(f"damon-ros analyze: {exc}", file=sys.stderr)
         return 2
-    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
-    t0 = time.perf_counter()
-    components = int(model.meta.get("gmr", {}).get("components", 8))
-    rows = sweep(data, data_meta, model.vae, components, model.margin, sizes, scenarios,
-                 args.grid, args.workers, args.seed, not args.quiet) if sizes else []
     out = Path(args.out)
-    files = plots(out, model.vae, data, rows, model.graph, model.gmr, model.margin)
-    # N*: the lowest mean measured T among the sizes with the best success rate (a size that
-    # fails runs is not made attractive by the T of the runs it did finish)
-    top = max((r["success"] for r in rows), default=0.0)
-    best = min((r for r in rows if r["success"] == top and np.isfinite(r["T_measured"])),
-               key=lambda r: r["T_measured"], default=None)
-    (out / "results.json").write_text(json.dumps({"sweep": rows, "n_star": best and best["N"]},
-                                                 indent=1) + "\n")
-    if rows:
-        print_table(rows)
-        print(f"N* = {best['N'] if best else 'none'} (lowest mean measured T at the best "
-              "success rate)")
+    fit = generate_tasks(out / "tasks" / "fit", args.families, args.fit_tasks,
+                         args.task_seed + 1000)
+    validate = generate_tasks(out / "tasks" / "validate", args.families, args.tasks,
+                              args.task_seed)
+    # the event a re-route answers: an obstacle closer than the planner certifies routes
+    # (on the same fast model), which only a moving obstacle can bring about
+    margin = PlannerConfig().margin
+    with tempfile.TemporaryDirectory(prefix="damon_analyze_") as tmp:
+        graphs, stats = {}, {}
+        for n in sizes:
+            config = GraphBuildConfig(n_vertices=n, grid_size=args.grid, seed=args.seed)
+            graph, built = build_model_graph(data, data_meta, model.vae, config, args.workers,
+                                             progress)
+            graphs[n] = str(Path(tmp) / f"graph_{n}.npz")
+            graph.save(graphs[n])
+            stats[n] = {"vertices": graph.n_vertices, "edges": graph.n_edges,
+                        "largest_component_share": built["largest_component_share"]}
+        try:
+            results = run_tasks(engine, graphs, fit, validate, args.seed, progress)
+        except EngineError as exc:
+            print(f"damon-ros analyze: {exc}", file=sys.stderr)
+            return 1
+    with (out / "tasks.jsonl").open("w") as f:  # every run, for a second look
+        f.writelines(json.dumps(r) + "\n" for r in results)
+    try:
+        gmr, components, route, runtime, t_plan = fit_models(results, model.vae, margin,
+                                                             args.seed)
+    except ValueError as exc:
+        print(f"damon-ros analyze: {exc}", file=sys.stderr)
+        return 1
+    rows, ece, calibration = sweep_rows(results, model.vae, gmr, route, runtime, t_plan,
+                                        stats, margin)
+    files = plots(out, model.vae, data, rows, model.graph, calibration)
+    by_measured = _n_star(rows, "T_measured", by_success=True)
+    by_model = _n_star(rows, "T_predicted", by_success=False)
+    summary = {
+        "sweep": rows, "n_star": by_measured, "n_star_predicted": by_model,
+        "calibration_error": ece,
+        "calibration_error_samples": _sample_calibration(data, model.vae, model.gmr,
+                                                         model.margin),
+        "runtime_model": {"kappa": runtime.kappa, "t0_s": runtime.t0,
+                          "c_reroute_s": runtime.c_reroute, "t_plan_s": t_plan,
+                          "margin_m": margin, "gmr_components": components,
+                          "route_calibration": {"a": route.a, "b": route.b},
+                          "step_s": STEP_S},
+        "tasks": {"families": args.families, "validate": len(validate), "fit": len(fit),
+                  "task_seed": args.task_seed, "fit_seed": args.task_seed + 1000},
+    }
+    (out / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print_table(rows)
+    print(f"runtime model: T = t_p (1 + E) + {runtime.kappa:.3f} D + {runtime.t0:.3f} s "
+          f"+ {runtime.c_reroute:.3f} s E  (fitted on {len(fit)} tasks per size)")
+    print(f"p(collision) calibration error on held-out task waypoints: {ece:.3f} "
+          f"(shipped GMR on collection samples: {summary['calibration_error_samples']:.3f})")
+    print(f"N* = {by_model} by the model, {by_measured} by measurement")
     print(f"plots: {', '.join(str(f) for f in files)} ({time.perf_counter() - t0:.0f} s)")
     return 0
+
+
+def _n_star(rows: list[dict], key: str, by_success: bool) -> int | None:
+    """The size with the lowest ``key``; with ``by_success`` only among the sizes with the
+    best success (a size that fails tasks is not made attractive by those it finished)."""
+    top = max((r["success"] for r in rows), default=0.0)
+    pool = [r for r in rows if math.isfinite(r[key]) and (not by_success or r["success"] == top)]
+    return min(pool, key=lambda r: r[key])["N"] if pool else None

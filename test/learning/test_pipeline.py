@@ -7,7 +7,6 @@ import json
 import pytest
 
 from damon_ros.cli import main as cli
-from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.learning.bundle import DamonModel, ModelError
 
 
@@ -46,16 +45,25 @@ def test_a_tampered_model_file_is_refused(small_model, tmp_path):
         DamonModel.load(copy)
 
 
-def test_analyze_prints_the_sweep_and_writes_the_plots(small_model, capsys):
+def test_analyze_predicts_held_out_tasks_and_writes_the_plots(small_model, capsys):
     root, data, model_dir = small_model
-    scenario = str(public_scenarios_dir() / "B-001.yaml")
     out = root / "analysis"
     assert cli(["analyze", "--data", str(data), "--model", str(model_dir), "--sizes", "800",
-                "--grid", "8", "--scenarios", scenario, "--out", str(out), "--workers", "1",
-                "--quiet"]) == 0
+                "--grid", "8", "--families", "AB", "--tasks", "2", "--fit-tasks", "4",
+                "--out", str(out), "--workers", "1", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "N*" in printed and "T meas." in printed
+    assert "N*" in printed and "T meas." in printed and "runtime model" in printed
     for name in ("latent_manifold.png", "graph_route.png", "sweep.png", "reliability.png"):
         assert (out / name).stat().st_size > 1000
     results = json.loads((out / "results.json").read_text())
-    assert results["sweep"][0]["N"] == 800
+    row = results["sweep"][0]
+    assert row["N"] == 800 and row["tasks"] == 2
+    assert results["tasks"] == {"families": "AB", "validate": 2, "fit": 4, "task_seed": 16,
+                                "fit_seed": 1016}
+    # validation and fit tasks are different scenes, and every run is kept
+    fit = {p.name for p in (out / "tasks" / "fit").glob("*.yaml")}
+    validate = {p.name for p in (out / "tasks" / "validate").glob("*.yaml")}
+    assert len(fit) == 4 and len(validate) == 2 and not fit & validate
+    runs = [json.loads(line) for line in (out / "tasks.jsonl").read_text().splitlines()]
+    assert len(runs) == 6 and {r["split"] for r in runs} == {"fit", "validate"}
+    assert 0.0 <= results["calibration_error"] <= 1.0
