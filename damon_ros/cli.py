@@ -27,6 +27,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                     "build the two-layer latent graph and fit the GMR into a model directory"),
     "analyze": ("damon_ros.tools.analysis", "main",
                 "GMR runtime model, graph-size sweep (N*) and the paper's plots"),
+    "ablation": ("damon_ros.tools.ablation", "main",
+                 "what the manifold contributes: latent kNN vs joint kNN vs both, same vertices"),
     "bench": ("damon_ros.tools.bench", "main",
               "closed-loop benchmark vs OMPL on scenarios and MotionBenchMaker problems"),
     "report": ("damon_ros.tools.report", "main",

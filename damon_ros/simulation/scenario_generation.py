@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -243,3 +244,23 @@ def generate_family(generator: ScenarioGenerator, family: str, count: int, seed:
         if progress is not None:
             progress(out[-1].scenario.name)
     return out
+
+
+def write_scenarios(generator: ScenarioGenerator, out: Path, families: str, count: int,
+                    seed: int, overwrite: bool = False,
+                    progress: Callable[[str], None] | None = None) -> tuple[list[Path], int]:
+    """``count`` scenario files spread over ``families`` (the first families get one more
+    when it does not divide) into ``out``; an existing file is kept unless ``overwrite``.
+    Returns every file's path and how many were written."""
+    out.mkdir(parents=True, exist_ok=True)
+    per_family = [count // len(families) + (i < count % len(families))
+                  for i in range(len(families))]
+    files, written = [], 0
+    for family, n in zip(families, per_family, strict=True):
+        for item in generate_family(generator, family, n, seed, progress):
+            path = out / f"{item.scenario.name}.yaml"
+            if overwrite or not path.exists():
+                path.write_text(item.yaml(), encoding="utf-8")
+                written += 1
+            files.append(path)
+    return files, written

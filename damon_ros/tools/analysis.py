@@ -36,46 +36,20 @@ GMR_COMPONENTS = (1, 2, 4, 8)  # chosen by held-out log-loss on the fit tasks
 
 
 # ---- one task, on a worker ----------------------------------------------------------
-class _TaskState:
-    """Per worker: the two robot models and the graphs loaded so far (by file)."""
-
-    def __init__(self) -> None:
-        from damon_ros.core.robot import Robot
-
-        self.fast, self.mesh = Robot("fast"), Robot("mesh")
-        self.graphs: dict[str, object] = {}
-
-    def graph(self, path: str):
-        from damon_ros.learning.graph import LatentGraph
-
-        if path not in self.graphs:
-            self.graphs = {path: LatentGraph.load(path)}  # one size at a time is enough
-        return self.graphs[path]
-
-
-def _task_setup() -> _TaskState:
-    return _TaskState()
-
-
-def _task_run(state: _TaskState, job: dict) -> dict:
+def _task_run(state, job: dict) -> dict:
     """Plan the task's first route (the prediction's input), then run it in closed loop."""
     from damon_ros.core.scenario import load_scenario
     from damon_ros.learning.runtime_model import threat_distances
-    from damon_ros.planning.graph_planner import GraphPlanner
-    from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
-    from damon_ros.simulation.closed_loop import SimConfig, run_scenario
+    from damon_ros.planning.reactive import RuntimeConfig
+    from damon_ros.simulation.graph_tasks import pose_goal
 
     scenario = load_scenario(job["scenario"])
-    graph, fast = state.graph(job["graph"]), state.fast
-    planner = GraphPlanner(graph, fast, fast.limits)
-    planner.warm_up()
-    record = run_scenario(scenario, ReactivePlanner(planner), "damon", state.mesh, fast,
-                          SimConfig(seed=job["seed"]))
+    record = state.run(job["graph"], scenario, job["seed"])
     out = {k: job[k] for k in ("size", "split", "scenario")}
     out.update(success=bool(record.success), T=record.total_time_s, replans=record.replans,
                plan_s=record.planning_time_s, planned=False)
-    scene = scenario.obstacles_at(0.0)
-    first = GraphPlanner(graph, fast, fast.limits).plan(scenario.start, _goal(scenario), scene)
+    scene, fast = scenario.obstacles_at(0.0), state.fast
+    first = state.planner(job["graph"]).plan(scenario.start, pose_goal(scenario), scene)
     if not first.success or first.trajectory is None:
         return out
     steps, passed = _route_steps(first.trajectory, record.planning_time_s)
@@ -96,30 +70,13 @@ def _route_steps(trajectory, start_s: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array([trajectory.sample(float(t))[0] for t in times]), start_s + times
 
 
-def _goal(scenario):
-    from damon_ros.planning.graph_planner import PoseGoal
-
-    g = scenario.goal
-    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
-
-
 # ---- the driver ---------------------------------------------------------------------
 def generate_tasks(out: Path, families: str, count: int, seed: int) -> list[Path]:
     """``count`` generated task files spread over ``families`` (kept if already there)."""
     from damon_ros.core.robot import Robot
-    from damon_ros.simulation.scenario_generation import ScenarioGenerator, generate_family
+    from damon_ros.simulation.scenario_generation import ScenarioGenerator, write_scenarios
 
-    out.mkdir(parents=True, exist_ok=True)
-    generator, files = ScenarioGenerator(Robot("mesh")), []
-    per_family = [count // len(families) + (i < count % len(families))
-                  for i in range(len(families))]
-    for family, n in zip(families, per_family, strict=True):
-        for item in generate_family(generator, family, n, seed):
-            path = out / f"{item.scenario.name}.yaml"
-            if not path.exists():
-                path.write_text(item.yaml(), encoding="utf-8")
-            files.append(path)
-    return files
+    return write_scenarios(ScenarioGenerator(Robot("mesh")), out, families, count, seed)[0]
 
 
 def run_tasks(engine, graphs: dict[int, str], fit: list[Path], validate: list[Path],
@@ -128,11 +85,12 @@ def run_tasks(engine, graphs: dict[int, str], fit: list[Path], validate: list[Pa
     from tqdm import tqdm
 
     from damon_ros.learning.engines import Work
+    from damon_ros.simulation.graph_tasks import setup
 
     jobs = [{"size": n, "graph": graphs[n], "split": split, "scenario": str(f), "seed": seed}
             for n in graphs for split, files in (("fit", fit), ("validate", validate))
             for f in files]
-    work = Work(_task_setup, (), _task_run)
+    work = Work(setup, (), _task_run)
     return list(tqdm(engine.map(work, jobs), total=len(jobs), desc="closed-loop tasks",
                      unit="task", disable=not progress))
 
@@ -417,8 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     files = plots(out, model.vae, data, rows, model.graph, calibration)
     by_measured = _n_star(rows, "T_measured", by_success=True)
     by_model = _n_star(rows, "T_predicted", by_success=False)
+    by_measured_t = _n_star(rows, "T_measured", by_success=False)
     summary = {
         "sweep": rows, "n_star": by_measured, "n_star_predicted": by_model,
+        "n_star_measured_T": by_measured_t,
         "calibration_error": ece,
         "calibration_error_samples": _sample_calibration(data, model.vae, model.gmr,
                                                          model.margin),
@@ -436,7 +396,8 @@ def main(argv: list[str] | None = None) -> int:
           f"+ {runtime.c_reroute:.3f} s E  (fitted on {len(fit)} tasks per size)")
     print(f"p(collision) calibration error on held-out task waypoints: {ece:.3f} "
           f"(shipped GMR on collection samples: {summary['calibration_error_samples']:.3f})")
-    print(f"N* = {by_model} by the model, {by_measured} by measurement")
+    print(f"N* = {by_model} by the model's T, {by_measured_t} by measured T, {by_measured} "
+          "by measured T among the sizes with the best measured success")
     print(f"plots: {', '.join(str(f) for f in files)} ({time.perf_counter() - t0:.0f} s)")
     return 0
 

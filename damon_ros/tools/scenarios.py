@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         FAMILIES,
         GenerationConfig,
         ScenarioGenerator,
-        generate_family,
+        write_scenarios,
     )
 
     unknown = sorted(set(args.families) - set(FAMILIES))
@@ -64,20 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"damon-ros scenarios: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     generator = ScenarioGenerator(Robot("mesh"), config)
-    written = kept = 0
-    for family in args.families:
-        for item in generate_family(generator, family, args.count, args.seed):
-            path = out / f"{item.scenario.name}.yaml"
-            if path.exists() and not args.force:
-                kept += 1
-                continue
-            path.write_text(item.yaml(), encoding="utf-8")
-            written += 1
-        if not args.quiet:
+    files, written = write_scenarios(generator, Path(args.out), args.families,
+                                     args.count * len(args.families), args.seed, args.force)
+    kept = len(files) - written
+    if not args.quiet:
+        for family in args.families:
             print(f"{family}: {args.count} scenarios ({FAMILIES[family]})", file=sys.stderr)
-    print(f"wrote {written} scenario files to {out}" + (
+    print(f"wrote {written} scenario files to {args.out}" + (
         f"; kept {kept} existing (use --force to overwrite)" if kept else ""))
     return 0

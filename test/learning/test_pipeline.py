@@ -67,3 +67,24 @@ def test_analyze_predicts_held_out_tasks_and_writes_the_plots(small_model, capsy
     runs = [json.loads(line) for line in (out / "tasks.jsonl").read_text().splitlines()]
     assert len(runs) == 6 and {r["split"] for r in runs} == {"fit", "validate"}
     assert 0.0 <= results["calibration_error"] <= 1.0
+
+
+def test_ablation_rewires_the_same_vertices_and_fills_its_section_only(small_model, tmp_path):
+    from damon_ros.core.resources import public_scenarios_dir
+
+    _, _, model_dir = small_model
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("# Benchmarks\n\nkept text\n")
+    args = ["ablation", "--model", str(model_dir), "--scenarios",
+            str(public_scenarios_dir() / "B-001.yaml"), "--generated", "0", "--workers", "1",
+            "--out", str(tmp_path / "runs.jsonl"), "--page", str(page), "--quiet"]
+    assert cli(args) == 0
+    runs = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
+    assert len({r["variant"] for r in runs}) == 3 and all(r["set"] == "public" for r in runs)
+    text = page.read_text()
+    assert "kept text" in text and text.count("<!-- ablation -->") == 1
+    assert cli(args) == 0  # a second run replaces the section, nothing else
+    again = page.read_text()
+    assert again.count("<!-- ablation -->") == 1 and again.startswith("# Benchmarks\n\nkept")
+    rows = [line for line in again.splitlines() if line.startswith("| ") and "public" in line]
+    assert len(rows) == 3
