@@ -86,6 +86,8 @@ PARAMETERS = (
     Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
           0.001, 60.0),
     Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
+    Param("fallback_budget_s", 0.1, "RRT-Connect (same checker) where the graph has no route; "
+          "doubled per further failure toward a goal, up to 8x (0 = off)", 0.0, 10.0),
     Param("realtime_priority", 15, "SCHED_FIFO priority of the node's threads (0 = normal "
           "scheduling): above the camera and tracker, below the 1 kHz control loops", 0, 99),
 )
@@ -127,7 +129,8 @@ class PlannerNode(Node):
         config = PlannerConfig(margin=p["margin"], resolution=p["resolution"],
                                velocity_scale=p["velocity_scale"],
                                acceleration_scale=p["acceleration_scale"],
-                               jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"])
+                               jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"],
+                               fallback_budget_s=p["fallback_budget_s"])
         planner = GraphPlanner(self.model.graph, self.robot, self.limits, config)
         planner.warm_up()
         # TCP positions of every vertex, for the graph markers (not on the first goal's path)
@@ -406,6 +409,8 @@ class PlannerNode(Node):
         values = {
             "state": rt.state, "plans": stats.plans, "replans": stats.replans,
             "holds": stats.holds, "escapes": stats.escapes, "obstacles": len(self.table),
+            # certified routes the RRT-Connect fallback found, reused for the same blockage
+            "experience_routes": len(rt.planner.experience),
             "collision_probability": f"{rt.last_probability:.3f}",
             "replan_latency_p50_ms": f"{np.median(latencies):.2f}" if latencies else "nan",
             # inf until the first one: a goal sent before then is refused

@@ -71,9 +71,14 @@ class PlannerConfig:
     trajectory_dt: float = 0.01
     ik_seeds: int = 16
     time_budget_s: float = 0.25  # a route search gives up (and says so) after this long
+    fallback_budget_s: float = 0.1  # RRT-Connect when the graph has no route (0 = none);
+    # doubled on each further failure toward the same goal, up to 8x
+    experience_routes: int = 32  # certified fallback routes kept for reuse
     exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
 
+EXPERIENCE_REACH_RAD = 1.0
+"""A stored route is tried for a query whose start and goal are this close to it."""
 MOVING_RAD_S = 0.05
 """Joint speed above which a new route starts where the arm will stop (`_route_moving`)."""
 BRAKE_LATENCY_S = 0.03
@@ -96,6 +101,7 @@ class PlanResult:
     edges_checked: int = 0
     edges_rejected: int = 0
     timing_ms: dict[str, float] = field(default_factory=dict)
+    source: str = "graph"  # graph | experience | rrtconnect: what found the route
 
     @property
     def path_length(self) -> float:
@@ -178,6 +184,8 @@ class GraphPlanner:
         # graph None: a subclass finds routes another way (the OMPL baselines)
         self._safe_ids = np.flatnonzero(graph.safe) if graph is not None else np.zeros(0, int)
         self._tree = cKDTree(graph.q[self._safe_ids]) if graph is not None else None
+        self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
+        self._fallback_failures = 0  # toward the current goal: escalates the budget
 
     @property
     def exact(self):
@@ -195,6 +203,8 @@ class GraphPlanner:
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
+        if self.config.fallback_budget_s > 0.0:
+            import ompl.geometric  # noqa: F401  (a first fallback should not pay the import)
         if self.graph is not None:
             goal_q = self.graph.q[self._safe_ids[len(self._safe_ids) // 2]]
             self.plan(q, goal_q, [probe])
@@ -269,6 +279,8 @@ class GraphPlanner:
         if q_goal is None:
             self.goal_q = None
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
+        if self.goal_q is None or not np.array_equal(self.goal_q, q_goal):
+            self._fallback_failures = 0
         self.goal_q = q_goal
         result = self._route_moving(q_start, qd_start, q_goal, scene)
         result.timing_ms["ik"] = 1e3 * (t_ik - t0)
@@ -348,6 +360,11 @@ class GraphPlanner:
     def _route(self, q_start, q_goal, scene: Scene) -> PlanResult:
         t0 = time.perf_counter()
         query = _Query(self, q_start, q_goal, scene)
+        path = self._from_experience(query)
+        if path is not None:  # the same blockage as before: no graph search first
+            return PlanResult(True, "", path=path, trajectory=self._time_parameterize(path),
+                              goal_q=q_goal, edges_checked=query.checked, source="experience",
+                              timing_ms={"search": 1e3 * (time.perf_counter() - t0)})
         order = self._node_order(q_start, scene.now)
         path_ids, searched = None, 0
         for width in self.config.widen:
@@ -366,8 +383,14 @@ class GraphPlanner:
         if path_ids is None:
             budget = " within the time budget" if time.perf_counter() >= query.deadline else ""
             result.reason = (f"no certified route to the goal in the graph{budget} "
-                             f"({query.checked} edges checked, {query.rejected} blocked); "
-                             "holding position")
+                             f"({query.checked} edges checked, {query.rejected} blocked)")
+            path, source, note = self._fallback(query)
+            if path is None:
+                result.reason += f"{note}; holding position"
+            else:
+                result.success, result.path, result.source = True, path, source
+                result.reason = ""
+                result.trajectory = self._time_parameterize(path)
         else:
             path = np.array([query.config(v) for v in path_ids])
             if self.config.shortcut:
@@ -379,6 +402,55 @@ class GraphPlanner:
         result.timing_ms.update(search=1e3 * (t_search - t0), shortcut_and_timing=1e3 * (
             t_end - t_search))
         return result
+
+    def _from_experience(self, query: _Query) -> np.ndarray | None:
+        """A stored fallback route that starts and ends near this query's (within
+        EXPERIENCE_REACH_RAD), re-certified for the obstacles now; the newest first."""
+        for route in reversed(self.experience):
+            ends = (np.min(np.linalg.norm(route - query.q_start, axis=1)),
+                    np.min(np.linalg.norm(route - query.q_goal, axis=1)))
+            if max(ends) > EXPERIENCE_REACH_RAD:
+                continue
+            path = _via(route, query.q_start, query.q_goal)
+            query.checked += len(path) - 1
+            if self._certified(path, query):
+                return path
+        return None
+
+    def _fallback(self, query: _Query) -> tuple[np.ndarray | None, str, str]:
+        """RRT-Connect under the same checker, where the graph has no route. Each failure
+        toward the same goal doubles the next budget (to 8x) and changes the sampling seed,
+        so a holding arm never repeats the identical failing search; a route found is kept
+        (`experience`) for the next query that meets the same blockage. Returns (path,
+        source, note for the reason)."""
+        if self.config.fallback_budget_s <= 0.0:
+            return None, "", ""
+        from damon_ros.planning.sampling import sampling_route
+
+        attempt = self._fallback_failures
+        budget = self.config.fallback_budget_s * 2 ** min(attempt, 3)
+        margin = min(self.config.margin, query.start_margin)
+        path = sampling_route("rrtconnect", self.robot, self.limits, query.q_start,
+                              query.q_goal, query.scene.ahead, margin, self.config.resolution,
+                              budget, seed=attempt)
+        if path is not None and self._certified(path, query):
+            self._fallback_failures = 0
+            self.experience = [*self.experience, path][-self.config.experience_routes:]
+            return path, "rrtconnect", ""
+        self._fallback_failures += 1
+        found = "a route that failed certification" if path is not None else "no route"
+        return None, "", (f"; RRT-Connect fallback found {found} in {budget:.2f} s (attempt "
+                          f"{attempt + 1}; the next one gets "
+                          f"{self.config.fallback_budget_s * 2 ** min(attempt + 1, 3):.2f} s "
+                          "and new samples)")
+
+    def _certified(self, path: np.ndarray, query: _Query) -> bool:
+        """Every segment certified by the query's rules (first segment, goal segment) and
+        free of self-collision on the meshes."""
+        last = len(path) - 2
+        return all(query.segment_certified(a, b, first=i == 0, last=i == last)
+                   and self.robot.segment_self_collision_free(a, b)
+                   for i, (a, b) in enumerate(zip(path, path[1:], strict=False)))
 
     def _node_order(self, q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
         """Obstacle nodes by distance from the obstacle point closest to the arm (GJK witness
@@ -578,3 +650,14 @@ class GraphPlanner:
             if p > 0.5:
                 return True, f"p(collision) at the current state is {p:.2f}"
         return False, ""
+
+
+def _via(route: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarray:
+    """``route`` reused from ``q_start`` to ``q_goal``: on from its waypoint nearest the start
+    to its waypoint nearest the goal (backwards if need be)."""
+    i = int(np.argmin(np.linalg.norm(route - q_start, axis=1)))
+    j = int(np.argmin(np.linalg.norm(route - q_goal, axis=1)))
+    middle = route[i:j + 1] if i <= j else route[j:i + 1][::-1]
+    path = np.vstack([q_start[None], middle, q_goal[None]])
+    step = np.max(np.abs(np.diff(path, axis=0)), axis=1)
+    return path[np.concatenate([[True], step > 1e-9])]

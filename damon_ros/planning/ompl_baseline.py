@@ -12,12 +12,9 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from damon_ros.core.limits import JointLimits
 from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PlanResult, Scene, _Query
-
-ALGORITHMS = {"rrt": "RRT", "rrtstar": "RRTstar", "rrtconnect": "RRTConnect"}
+from damon_ros.planning.sampling import ALGORITHMS, sampling_route
 
 
 class OmplPlanner(GraphPlanner):
@@ -48,65 +45,21 @@ class OmplPlanner(GraphPlanner):
                 "margin_m": self.config.margin}
 
     def _route(self, q_start, q_goal, scene: Scene) -> PlanResult:
-        from ompl import base as ob
-        from ompl import geometric as og
-        from ompl import util as ou
-
         t0 = time.perf_counter()
-        ou.setLogLevel(ou.LogLevel.LOG_NONE)
-        ou.RNG.setSeed(self.seed)
-        space = ob.RealVectorStateSpace(7)
-        bounds = ob.RealVectorBounds(7)
-        for i in range(7):
-            bounds.setLow(i, float(self.limits.lower[i]))
-            bounds.setHigh(i, float(self.limits.upper[i]))
-        space.setBounds(bounds)
-        si = ob.SpaceInformation(space)
         # one margin for every state OMPL checks; never below zero (the planner's "may only
         # move away" rule for a start inside the conservative envelope needs segment order)
-        margin = max(0.0, min(self.config.margin, self._start_margin(q_start, scene.now)))
-        obstacles = scene.ahead
-        robot = self.robot
-
-        def valid(state) -> bool:
-            q = np.array([state[i] for i in range(7)])
-            return not obstacles or bool(robot.distances(q[None], obstacles)[0] > margin)
-
-        si.setStateValidityChecker(valid)
-        # OMPL steps motions by a fraction of the space's extent (L2): ≤ our max-norm step
-        si.setStateValidityCheckingResolution(self.config.resolution / space.getMaximumExtent())
-        si.setup()
-        start, goal = space.allocState(), space.allocState()
-        for i in range(7):
-            start[i], goal[i] = float(q_start[i]), float(q_goal[i])
-        pdef = ob.ProblemDefinition(si)
-        pdef.setStartAndGoalStates(start, goal)
-        planner = getattr(og, ALGORITHMS[self.algorithm])(si)
-        if self.range_rad:
-            planner.setRange(self.range_rad)
-        planner.setProblemDefinition(pdef)
-        planner.setup()
-        budget = self.solve_time
-        planner.solve(budget)
+        margin = min(self.config.margin, self._start_margin(q_start, scene.now))
+        waypoints = sampling_route(self.algorithm, self.robot, self.limits, q_start, q_goal,
+                                   scene.ahead, margin, self.config.resolution,
+                                   self.solve_time, self.seed, self.range_rad)
         result = PlanResult(False, "", goal_q=q_goal)
-        if pdef.hasExactSolution():
-            path = pdef.getSolutionPath()
-            og.PathSimplifier(si).simplifyMax(path)
-            waypoints = np.array([[path.getState(k)[i] for i in range(7)]
-                                  for k in range(path.getStateCount())])
-            waypoints[0], waypoints[-1] = q_start, q_goal
-            query = _Query(self, q_start, q_goal, scene)  # the planner's own certification
-            last = len(waypoints) - 2
-            if all(query.segment_certified(a, b, first=i == 0, last=i == last)
-                   and self.robot.segment_self_collision_free(a, b)
-                   for i, (a, b) in enumerate(zip(waypoints, waypoints[1:], strict=False))):
-                result.success, result.path = True, waypoints
-                result.trajectory = self._time_parameterize(waypoints)
-            else:
-                result.reason = (f"{ALGORITHMS[self.algorithm]} path fails certification "
-                                 "(self-collision or margin); holding")
+        name = ALGORITHMS[self.algorithm]
+        if waypoints is None:
+            result.reason = f"{name} found no route in {self.solve_time:.2f} s; holding position"
+        elif self._certified(waypoints, _Query(self, q_start, q_goal, scene)):
+            result.success, result.path = True, waypoints
+            result.trajectory = self._time_parameterize(waypoints)
         else:
-            result.reason = (f"{ALGORITHMS[self.algorithm]} found no route in "
-                             f"{budget:.2f} s; holding position")
+            result.reason = f"{name} path fails certification (self-collision or margin); holding"
         result.timing_ms["search"] = 1e3 * (time.perf_counter() - t0)
         return result

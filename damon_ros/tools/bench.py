@@ -53,6 +53,7 @@ def make_runtime(name: str, model, fast, seed: int, solve_time: float):
         settings = {"graph_vertices": model.graph.n_vertices, "margin_m": planner.config.margin,
                     "resolution_rad": planner.config.resolution,
                     "time_budget_s": planner.config.time_budget_s,
+                    "fallback_budget_s": planner.config.fallback_budget_s,
                     "model": model.directory.name}
     else:
         planner = OmplPlanner(name, fast, fast.limits, solve_time=solve_time, seed=seed)

@@ -1,0 +1,102 @@
+"""The complete fallback: where the graph has no route, RRT-Connect under the same checker
+finds one, it is certified before it is returned, reused the next time, and a failing
+search escalates instead of repeating itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from damon_ros.core.limits import joint_limits
+from damon_ros.core.robot import Robot
+from damon_ros.core.scenario import load_public_scenarios
+from damon_ros.learning.bundle import DamonModel
+from damon_ros.planning import sampling
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
+
+SCENE = load_public_scenarios(["A-001"])[0]
+
+
+class NoGraphRoute(GraphPlanner):
+    """The graph search finds nothing, as in a cell the graph was not built for."""
+
+    def _lazy_astar(self, query, active):
+        return None
+
+
+@pytest.fixture(scope="module")
+def robots():
+    return Robot("fast"), Robot("mesh")
+
+
+@pytest.fixture()
+def planner(robots):
+    p = NoGraphRoute(DamonModel.load().graph, robots[0], joint_limits("panda"),
+                     PlannerConfig(time_budget_s=5.0, fallback_budget_s=2.0))
+    p.warm_up()
+    return p
+
+
+@pytest.fixture()
+def calls(monkeypatch):
+    """Every sampling search the planner starts: (budget, seed)."""
+    seen, real = [], sampling.sampling_route
+
+    def spy(*args, **kwargs):
+        seen.append((args[8], kwargs.get("seed")))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sampling, "sampling_route", spy)
+    return seen
+
+
+def _goal() -> PoseGoal:
+    g = SCENE.goal
+    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
+
+
+def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, calls):
+    fast, mesh = robots
+    obstacles = SCENE.obstacles_at(0.0)
+    first = planner.plan(SCENE.start, _goal(), obstacles)
+    assert first.success and first.source == "rrtconnect" and len(calls) == 1
+    # certified as every route is: fast model with the margin, meshes apart, no self-contact
+    for a, b in zip(first.path, first.path[1:], strict=False):
+        assert fast.segment_free(a, b, obstacles, margin=planner.config.margin * 0.999,
+                                 resolution=planner.config.resolution)
+        assert mesh.segment_self_collision_free(a, b)
+        states = a + np.linspace(0, 1, 40)[:, None] * (b - a)
+        assert mesh.distances(states, obstacles).min() > 0.0
+    again = planner.plan(SCENE.start, _goal(), obstacles)
+    assert again.success and again.source == "experience" and len(calls) == 1
+    np.testing.assert_allclose(again.path[-1], first.path[-1])
+
+
+def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
+    budgets = []
+
+    def nothing(*args, **kwargs):
+        budgets.append((args[8], kwargs.get("seed")))
+        return None
+
+    monkeypatch.setattr(sampling, "sampling_route", nothing)
+    reasons = [planner.plan(SCENE.start, _goal(), SCENE.obstacles_at(0.0)).reason
+               for _ in range(5)]
+    assert budgets == [(2.0, 0), (4.0, 1), (8.0, 2), (16.0, 3), (16.0, 4)]
+    assert "attempt 1" in reasons[0] and "attempt 3" in reasons[2]
+    assert all("holding position" in r for r in reasons)
+
+
+def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
+    # a "route" straight through the box: what the checker must refuse
+    goal_q = planner.resolve_goal(_goal(), SCENE.start, SCENE.obstacles_at(0.0))[0]
+
+    def through(algorithm, robot, limits, q_start, q_goal, *args, **kwargs):
+        return np.array([q_start, 0.5 * (q_start + q_goal), q_goal])
+
+    monkeypatch.setattr(sampling, "sampling_route", through)
+    fast = planner.robot
+    line = np.linspace(SCENE.start, goal_q, 50)
+    assert fast.distances(line, SCENE.obstacles_at(0.0)).min() <= planner.config.margin
+    result = planner.plan(SCENE.start, _goal(), SCENE.obstacles_at(0.0))
+    assert not result.success and "failed certification" in result.reason
