@@ -17,7 +17,8 @@ p_i comes from a GMR fitted on what the planner meets, not on the training sampl
 step of each planned fit-task route (its configuration every 0.25 s of motion) as the
 latent point of [q_i, the closest obstacle point when planned, flag 0], paired with its
 :func:`threat_distances` — how close any obstacle, moving as the scenario moves it, comes
-to q_i before the arm has passed it. The route's re-route probability r is
+to q_i before the arm has passed it (modelled as log clearance, see the analysis tool). The
+route's re-route probability r is
 1 − Π(1 − p_i) mapped through :class:`RouteCalibration`, and E = r / (1 − r).
 """
 

@@ -59,6 +59,8 @@ def start_node(module: str, params: Mapping[str, object] | None, env: Mapping[st
                          log_path, cwd)
 
 
+ORPHAN_GRACE_S = 10.0
+"""How long an orphaned node may take to shut down on SIGINT before it exits outright."""
 PARENT_VARIABLE = "DAMON_EXIT_WITH_PARENT"
 """Set by `start_process` to the starter's pid; a process that runs `exit_with_parent` ends
 when that pid is no longer its parent."""
@@ -128,6 +130,15 @@ def exit_with_parent(period_s: float = 0.5) -> None:
     def watch() -> None:
         while os.getppid() == int(expected):
             time.sleep(period_s)
-        os.kill(os.getpid(), signal.SIGINT)
+        # SIGINT again each period: one that lands during start-up, before the node's
+        # handler is installed, can be lost (a loaded test run saw an orphan run on for a
+        # minute); after ORPHAN_GRACE_S the process ends without its shutdown
+        deadline = time.monotonic() + ORPHAN_GRACE_S
+        while time.monotonic() < deadline:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(period_s)
+        print(f"{PARENT_VARIABLE}: the starting process is gone and SIGINT did not end this "
+              f"one within {ORPHAN_GRACE_S:.0f} s; exiting", file=sys.stderr, flush=True)
+        os._exit(1)
 
     threading.Thread(target=watch, name="exit_with_parent", daemon=True).start()

@@ -204,17 +204,28 @@ def test_stops_when_commands_go_stale(graph: Graph, tmp_path: Path):
     assert len(rest) > 50 and max(rest) - min(rest) < 1e-3  # and it stays at rest
 
 
-def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
-    assert graph.settle()
-    before = len(rosutil.log_lines(graph.proc, "rejected joint command"))
-    graph.stream([0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 0.2)
-    q_before = graph.q()
-    for _ in range(5):  # a burst shorter than the timeout: the good command stays in force
+def _bad_burst(graph: Graph) -> None:
+    for _ in range(5):
         graph.commands.publish(Float64MultiArray(data=[1.0, 2.0, 3.0]))
         graph.commands.publish(Float64MultiArray(data=[float("nan")] * 7))
         graph.commands.publish(Float64MultiArray(data=[float("inf")] + [0.0] * 6))
-    graph.ros.spin_for(0.03)
-    assert abs(graph.qd()[0] - 0.2) < 0.01, "the last good command should still hold"
+
+
+def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
+    assert graph.settle()
+    before = len(rosutil.log_lines(graph.proc, "rejected joint command"))
+    for _ in range(3):
+        stale = len(rosutil.log_lines(graph.proc, "no joint command"))
+        graph.stream([0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 0.2)
+        q_before = graph.q()
+        _bad_burst(graph)  # shorter than the timeout: the good command stays in force
+        graph.ros.spin_for(0.03)
+        held = abs(graph.qd()[0] - 0.2) < 0.01
+        # stopped, but on the timeout: this client stalled (a loaded machine) between its
+        # last good command and the check, which the bad ones do not explain: again
+        if held or len(rosutil.log_lines(graph.proc, "no joint command")) == stale:
+            break
+    assert held, "the last good command should still hold"
     assert graph.q()[0] > q_before[0]
     assert graph.settle(), "a stream of bad commands must end in the timeout stop"
     lines = rosutil.log_lines(graph.proc, "rejected joint command")
