@@ -10,7 +10,7 @@ from __future__ import annotations
 from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.learning.graph import LatentGraph
-from damon_ros.planning.graph_planner import GraphPlanner, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
 from damon_ros.planning.reactive import ReactivePlanner
 from damon_ros.simulation.closed_loop import RunRecord, SimConfig, run_scenario
 
@@ -27,14 +27,15 @@ class GraphTaskState:
             self._graph = (path, LatentGraph.load(path))
         return self._graph[1]
 
-    def planner(self, path: str) -> GraphPlanner:
-        planner = GraphPlanner(self.graph(path), self.fast, self.fast.limits)
+    def planner(self, path: str, config: PlannerConfig | None = None) -> GraphPlanner:
+        planner = GraphPlanner(self.graph(path), self.fast, self.fast.limits, config)
         planner.warm_up()
         return planner
 
-    def run(self, graph_path: str, scenario: Scenario, seed: int) -> RunRecord:
+    def run(self, graph_path: str, scenario: Scenario, seed: int,
+            config: PlannerConfig | None = None) -> RunRecord:
         """One closed-loop run with a fresh planner (no state carried between tasks)."""
-        runtime = ReactivePlanner(self.planner(graph_path))
+        runtime = ReactivePlanner(self.planner(graph_path, config))
         return run_scenario(scenario, runtime, "damon", self.mesh, self.fast,
                             SimConfig(seed=seed))
 
@@ -44,9 +45,11 @@ def setup() -> GraphTaskState:
 
 
 def run_job(state: GraphTaskState, job: dict) -> dict:
-    """``job``: ``graph`` and ``scenario`` paths, ``seed``; any other keys are echoed."""
+    """``job``: ``graph`` and ``scenario`` paths, ``seed``, optionally ``planner`` (a dict
+    of :class:`PlannerConfig` fields); any other keys are echoed."""
     scenario = load_scenario(job["scenario"])
-    record = state.run(job["graph"], scenario, job["seed"]).as_json()
+    config = PlannerConfig(**job["planner"]) if job.get("planner") else None
+    record = state.run(job["graph"], scenario, job["seed"], config).as_json()
     return {**job, **record, "family": scenario.family, "dynamic": scenario.is_dynamic}
 
 

@@ -26,6 +26,8 @@ VARIANTS = {
     "both (shipped)": {},
 }
 MARK = ("<!-- ablation -->", "<!-- /ablation -->")
+GRAPH_ONLY = {"fallback_budget_s": 0.0}
+"""The planner's RRT-Connect fallback is off here: the question is what each graph finds."""
 
 
 def rewired(graph, config, workers: int, progress: bool):
@@ -167,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             graph.save(graphs[variant])
             stats[variant] = {"edges": graph.n_edges, **graph.connectivity()}
             jobs += [{"variant": variant, "set": subset, "graph": graphs[variant],
-                      "scenario": str(f), "seed": args.seed}
+                      "scenario": str(f), "seed": args.seed, "planner": GRAPH_ONLY}
                      for subset, files in (("public", public), ("generated", generated))
                      for f in files]
         results = list(tqdm(engine.map(Work(setup, (), run_job), jobs), total=len(jobs),
@@ -179,7 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["## What the learned manifold contributes (same vertices, three edge rules)", "",
              f"`{command}`", "", *table(results, stats), "",
              f"{model.graph.n_vertices:,} vertices of the shipped model; each variant pruned "
-             "of self-colliding edges; closed loop, ideal perception; public scenarios and "
+             "of self-colliding edges; the graph alone (the RRT-Connect fallback off); "
+             "closed loop, ideal perception; public scenarios and "
              f"{len(generated)} generated ones (seed {args.generated_seed})."]
     if args.vae_data:
         sizes = [int(k) for k in args.latent_sizes.split(",") if k.strip()]
