@@ -22,7 +22,6 @@ import argparse
 import json
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -350,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"damon-ros analyze: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
+    out = out.resolve()
     fit = generate_tasks(out / "tasks" / "fit", args.families, args.fit_tasks,
                          args.task_seed + 1000)
     validate = generate_tasks(out / "tasks" / "validate", args.families, args.tasks,
@@ -357,21 +357,23 @@ def main(argv: list[str] | None = None) -> int:
     # the event a re-route answers: an obstacle closer than the planner certifies routes
     # (on the same fast model), which only a moving obstacle can bring about
     margin = PlannerConfig().margin
-    with tempfile.TemporaryDirectory(prefix="damon_analyze_") as tmp:
-        graphs, stats = {}, {}
-        for n in sizes:
-            config = GraphBuildConfig(n_vertices=n, grid_size=args.grid, seed=args.seed)
-            graph, built = build_model_graph(data, data_meta, model.vae, config, args.workers,
-                                             progress)
-            graphs[n] = str(Path(tmp) / f"graph_{n}.npz")
-            graph.save(graphs[n])
-            stats[n] = {"vertices": graph.n_vertices, "edges": graph.n_edges,
-                        "largest_component_share": built["largest_component_share"]}
-        try:
-            results = run_tasks(engine, graphs, fit, validate, args.seed, progress)
-        except EngineError as exc:
-            print(f"damon-ros analyze: {exc}", file=sys.stderr)
-            return 1
+    # graphs and task files are written under --out, and jobs name them: on a cluster of
+    # several machines --out must be a folder every node sees (a shared file system)
+    graphs, stats = {}, {}
+    (out / "graphs").mkdir(parents=True, exist_ok=True)
+    for n in sizes:
+        config = GraphBuildConfig(n_vertices=n, grid_size=args.grid, seed=args.seed)
+        graph, built = build_model_graph(data, data_meta, model.vae, config, args.workers,
+                                         progress)
+        graphs[n] = str((out / "graphs" / f"graph_{n}.npz").resolve())
+        graph.save(graphs[n])
+        stats[n] = {"vertices": graph.n_vertices, "edges": graph.n_edges,
+                    "largest_component_share": built["largest_component_share"]}
+    try:
+        results = run_tasks(engine, graphs, fit, validate, args.seed, progress)
+    except EngineError as exc:
+        print(f"damon-ros analyze: {exc}", file=sys.stderr)
+        return 1
     with (out / "tasks.jsonl").open("w") as f:  # every run, for a second look
         f.writelines(json.dumps(r) + "\n" for r in results)
     try:
