@@ -81,6 +81,11 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 def cluster():
     """Address of a head plus one more node, both on 127.0.0.1 with one CPU each."""
     temp = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))  # short: Ray's socket paths
+    # a home of its own: Ray keeps an auth token in ~/.ray once it has run here (a local
+    # instance writes one), and a node joining with it was refused ("InvalidAuthToken")
+    home, saved_home = temp / "home", os.environ.get("HOME")
+    home.mkdir()
+    os.environ["HOME"] = str(home)  # the driver (this process) connects from it too
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p),
         RAY_agent_register_timeout_ms="300000", RAY_DASHBOARD_STARTUP_TIMEOUT_S="300")
@@ -96,6 +101,10 @@ def cluster():
         yield address
     finally:
         _stop(procs)
+        if saved_home is None:
+            os.environ.pop("HOME", None)
+        else:
+            os.environ["HOME"] = saved_home
         shutil.rmtree(temp, ignore_errors=True)
 
 
