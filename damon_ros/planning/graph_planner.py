@@ -472,7 +472,7 @@ class GraphPlanner:
         from damon_ros.planning.sampling import sampling_route
 
         attempt = self._fallback_failures
-        budget = self.config.fallback_budget_s * 2 ** min(attempt, 3)
+        budget = self._fallback_budget(attempt)
         margin = min(self.config.margin, query.start_margin)
         path = sampling_route("rrtconnect", self.robot, self.limits, query.q_start,
                               query.q_goal, query.scene.ahead, margin, self.config.resolution,
@@ -485,8 +485,12 @@ class GraphPlanner:
         found = "a route that failed certification" if path is not None else "no route"
         return None, "", (f"; RRT-Connect fallback found {found} in {budget:.2f} s (attempt "
                           f"{attempt + 1}; the next one gets "
-                          f"{self.config.fallback_budget_s * 2 ** min(attempt + 1, 3):.2f} s "
+                          f"{self._fallback_budget(attempt + 1):.2f} s "
                           "and new samples)")
+
+    def _fallback_budget(self, attempt: int) -> float:
+        """The sampling budget of the ``attempt``-th try (from 0) toward one goal."""
+        return self.config.fallback_budget_s * 2 ** min(attempt, 3)
 
     def _certified(self, path: np.ndarray, query: _Query) -> bool:
         """Every segment certified by the query's rules (first segment, goal segment) and

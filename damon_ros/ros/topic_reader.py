@@ -31,9 +31,8 @@ class Inbox:
     wait set in Python for every callback); with the same messages taken non-blocking from
     the subscription in the 1 kHz loop's own tick the two used 0.53 and 0.47, and each
     message arrives in the tick that uses it instead of whenever the executor gets round
-    to it. The
-    subscription lives on a helper node ``<node>_<suffix>`` in the same context (the
-    process's remaps apply to it) that no executor spins.
+    to it. The subscription lives on a helper node ``<node>_<suffix>`` in the same context
+    (the process's remaps apply to it) that no executor spins.
     """
 
     def __init__(self, node: Node, msg_type, topic: str, suffix: str,

@@ -102,6 +102,12 @@ class _Perception:
         return out
 
 
+def pose_goal(scenario: Scenario) -> PoseGoal:
+    """The scenario's goal as the planner takes it."""
+    g = scenario.goal
+    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
+
+
 def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, fast,
                  config: SimConfig | None = None) -> RunRecord:
     """Simulate one scenario with one planner; never raises for a planner failure."""
@@ -111,8 +117,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     sim = ArmSim(limits, scenario.start, command_timeout=0.1)
     follower = TrajectoryFollower(limits, rate_hz=1.0 / config.control_dt)
     perception = _Perception(scenario, config)
-    goal = PoseGoal(scenario.goal.position, scenario.goal.orientation,
-                    scenario.goal.position_tolerance, scenario.goal.orientation_tolerance)
+    goal = pose_goal(scenario)
     t, q, qd_prev = 0.0, scenario.start.copy(), np.zeros(7)
     next_camera, held_since = 0.0, None
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.learning.graph import LatentGraph
-from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
 from damon_ros.planning.reactive import ReactivePlanner
 from damon_ros.simulation.closed_loop import RunRecord, SimConfig, run_scenario
 
@@ -27,9 +27,13 @@ class GraphTaskState:
             self._graph = (path, LatentGraph.load(path))
         return self._graph[1]
 
-    def planner(self, path: str, config: PlannerConfig | None = None) -> GraphPlanner:
+    def planner(self, path: str, config: PlannerConfig | None = None,
+                warm: bool = True) -> GraphPlanner:
+        """A fresh planner on the graph; ``warm``: warmed up, for runs whose planning time
+        is measured."""
         planner = GraphPlanner(self.graph(path), self.fast, self.fast.limits, config)
-        planner.warm_up()
+        if warm:
+            planner.warm_up()
         return planner
 
     def run(self, graph_path: str, scenario: Scenario, seed: int,
@@ -52,7 +56,3 @@ def run_job(state: GraphTaskState, job: dict) -> dict:
     record = state.run(job["graph"], scenario, job["seed"], config).as_json()
     return {**job, **record, "family": scenario.family, "dynamic": scenario.is_dynamic}
 
-
-def pose_goal(scenario: Scenario) -> PoseGoal:
-    g = scenario.goal
-    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)

@@ -39,7 +39,6 @@ FAMILIES = {
     "F": "one static tilted cylinder",
     "G": "cylinder and a diving sphere",
 }
-DYNAMIC_FAMILIES = "DEG"
 
 
 @dataclass(frozen=True)

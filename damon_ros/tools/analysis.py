@@ -41,7 +41,7 @@ def _task_run(state, job: dict) -> dict:
     from damon_ros.core.scenario import load_scenario
     from damon_ros.learning.runtime_model import threat_distances
     from damon_ros.planning.reactive import RuntimeConfig
-    from damon_ros.simulation.graph_tasks import pose_goal
+    from damon_ros.simulation.closed_loop import pose_goal
 
     scenario = load_scenario(job["scenario"])
     record = state.run(job["graph"], scenario, job["seed"])
@@ -49,7 +49,9 @@ def _task_run(state, job: dict) -> dict:
     out.update(success=bool(record.success), T=record.total_time_s, replans=record.replans,
                plan_s=record.planning_time_s, planned=False)
     scene, fast = scenario.obstacles_at(0.0), state.fast
-    first = state.planner(job["graph"]).plan(scenario.start, pose_goal(scenario), scene)
+    # the prediction's own plan: not timed, so not warmed up again
+    first = state.planner(job["graph"], warm=False).plan(scenario.start, pose_goal(scenario),
+                                                         scene)
     if not first.success or first.trajectory is None:
         return out
     steps, passed = _route_steps(first.trajectory, record.planning_time_s)
@@ -348,8 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelError, ValueError) as exc:
         print(f"damon-ros analyze: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out = out.resolve()
+    out = Path(args.out).resolve()
     fit = generate_tasks(out / "tasks" / "fit", args.families, args.fit_tasks,
                          args.task_seed + 1000)
     validate = generate_tasks(out / "tasks" / "validate", args.families, args.tasks,
@@ -365,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
         config = GraphBuildConfig(n_vertices=n, grid_size=args.grid, seed=args.seed)
         graph, built = build_model_graph(data, data_meta, model.vae, config, args.workers,
                                          progress)
-        graphs[n] = str((out / "graphs" / f"graph_{n}.npz").resolve())
+        graphs[n] = str(out / "graphs" / f"graph_{n}.npz")
         graph.save(graphs[n])
         stats[n] = {"vertices": graph.n_vertices, "edges": graph.n_edges,
                     "largest_component_share": built["largest_component_share"]}

@@ -12,7 +12,8 @@ from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.learning.bundle import DamonModel
 from damon_ros.planning import sampling
-from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
+from damon_ros.simulation.closed_loop import pose_goal
 
 SCENE = load_public_scenarios(["A-001"])[0]
 
@@ -50,15 +51,10 @@ def calls(monkeypatch):
     return seen
 
 
-def _goal() -> PoseGoal:
-    g = SCENE.goal
-    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
-
-
 def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, calls):
     fast, mesh = robots
     obstacles = SCENE.obstacles_at(0.0)
-    first = planner.plan(SCENE.start, _goal(), obstacles)
+    first = planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
     assert first.success and first.source == "rrtconnect" and len(calls) == 1
     # certified as every route is: fast model with the margin, meshes apart, no self-contact
     for a, b in zip(first.path, first.path[1:], strict=False):
@@ -67,7 +63,7 @@ def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, 
         assert mesh.segment_self_collision_free(a, b)
         states = a + np.linspace(0, 1, 40)[:, None] * (b - a)
         assert mesh.distances(states, obstacles).min() > 0.0
-    again = planner.plan(SCENE.start, _goal(), obstacles)
+    again = planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
     assert again.success and again.source == "experience" and len(calls) == 1
     np.testing.assert_allclose(again.path[-1], first.path[-1])
 
@@ -80,7 +76,7 @@ def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
         return None
 
     monkeypatch.setattr(sampling, "sampling_route", nothing)
-    reasons = [planner.plan(SCENE.start, _goal(), SCENE.obstacles_at(0.0)).reason
+    reasons = [planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0)).reason
                for _ in range(5)]
     assert budgets == [(2.0, 0), (4.0, 1), (8.0, 2), (16.0, 3), (16.0, 4)]
     assert "attempt 1" in reasons[0] and "attempt 3" in reasons[2]
@@ -89,7 +85,7 @@ def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
 
 def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
     # a "route" straight through the box: what the checker must refuse
-    goal_q = planner.resolve_goal(_goal(), SCENE.start, SCENE.obstacles_at(0.0))[0]
+    goal_q = planner.resolve_goal(pose_goal(SCENE), SCENE.start, SCENE.obstacles_at(0.0))[0]
 
     def through(algorithm, robot, limits, q_start, q_goal, *args, **kwargs):
         return np.array([q_start, 0.5 * (q_start + q_goal), q_goal])
@@ -98,5 +94,5 @@ def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
     fast = planner.robot
     line = np.linspace(SCENE.start, goal_q, 50)
     assert fast.distances(line, SCENE.obstacles_at(0.0)).min() <= planner.config.margin
-    result = planner.plan(SCENE.start, _goal(), SCENE.obstacles_at(0.0))
+    result = planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0))
     assert not result.success and "failed certification" in result.reason

@@ -12,6 +12,7 @@ from damon_ros.core.shapes import Shape
 from damon_ros.learning.bundle import DamonModel
 from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
 from damon_ros.planning.reactive import ReactivePlanner, swept
+from damon_ros.simulation.closed_loop import pose_goal
 
 SCENARIOS = load_public_scenarios()
 TEST_CONFIG = PlannerConfig(time_budget_s=5.0)
@@ -40,11 +41,6 @@ def planner(model, robots) -> GraphPlanner:
     return p
 
 
-def _goal(scenario) -> PoseGoal:
-    g = scenario.goal
-    return PoseGoal(g.position, g.orientation, g.position_tolerance, g.orientation_tolerance)
-
-
 def _mesh_clearance_along(mesh: Robot, path: np.ndarray, obstacles, step: float = 0.02):
     worst = np.inf
     for a, b in zip(path, path[1:], strict=False):
@@ -60,7 +56,7 @@ def test_every_public_scenario_gets_a_plan_certified_by_the_exact_meshes(scenari
                                                                           robots):
     _, mesh = robots
     obstacles = scenario.obstacles_at(0.0)
-    result = planner.plan(scenario.start, _goal(scenario), obstacles)
+    result = planner.plan(scenario.start, pose_goal(scenario), obstacles)
     assert result.success, result.reason
     assert np.allclose(result.path[0], scenario.start)
     position, _ = mesh.tcp_pose(result.path[-1])
@@ -71,7 +67,7 @@ def test_every_public_scenario_gets_a_plan_certified_by_the_exact_meshes(scenari
 def test_trajectories_respect_the_limit_profile(planner):
     limits = joint_limits("panda")
     for scenario in SCENARIOS[:6]:
-        result = planner.plan(scenario.start, _goal(scenario), scenario.obstacles_at(0.0))
+        result = planner.plan(scenario.start, pose_goal(scenario), scenario.obstacles_at(0.0))
         tr = result.trajectory
         assert np.all(np.abs(tr.velocities) <= limits.velocity + 1e-9)
         assert np.all(np.abs(tr.accelerations) <= limits.acceleration + 1e-6)
@@ -85,7 +81,7 @@ def test_trajectories_respect_the_limit_profile(planner):
 def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(planner, robots):
     _, mesh = robots
     scenario = next(s for s in SCENARIOS if s.name == "B-001")
-    result = planner.plan(scenario.start, _goal(scenario), [])
+    result = planner.plan(scenario.start, pose_goal(scenario), [])
     assert result.success
     # put a ball on the middle of the first segment's swept TCP path
     mid = 0.5 * (result.path[0] + result.path[1])
@@ -101,7 +97,7 @@ def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(plann
 def test_a_goal_inside_an_obstacle_is_refused_with_a_reason(planner):
     scenario = SCENARIOS[0]
     engulf = Shape("sphere", (0.15,), scenario.goal.position)
-    result = planner.plan(scenario.start, _goal(scenario), [engulf])
+    result = planner.plan(scenario.start, pose_goal(scenario), [engulf])
     assert not result.success
     assert "goal pose refused" in result.reason and "collide" in result.reason
 
@@ -116,7 +112,7 @@ def test_no_route_means_no_path_and_a_reason(planner, monkeypatch):
     """When no edge can be certified nothing is returned: the planner never falls back on an
     unchecked path (here every segment that comes near the goal is refused)."""
     scenario = SCENARIOS[0]
-    goal = _goal(scenario)
+    goal = pose_goal(scenario)
     q_goal, _ = planner.resolve_goal(goal, scenario.start, scenario.obstacles_at(0.0))
     original = planner.segment_free
 
