@@ -26,7 +26,7 @@ import numpy as np
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment, ros_environment
-from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares
+from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares, planner_has_state
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
 
@@ -81,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     result = run_demo(scenario, path, domain, out, args)
     print_summary(result)
+    if not result["success"]:
+        _print_log_tail(out / "planner.log")
     if not args.no_plots and result["recording"].t:
         from damon_ros.tools.demo_plots import write_plots
 
@@ -174,8 +176,8 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
     result = {"success": False, "collided": False, "reason": "", "recording": rec,
               "scenario": scenario.name}
     try:
-        ready = _spin_until(executor, lambda: "q" in latest and rec.status and obstacle_data,
-                            ready_by, procs)
+        ready = _spin_until(executor, lambda: "q" in latest and planner_has_state(rec.status)
+                            and obstacle_data, ready_by, procs)
         if not ready:
             result["reason"] = "the nodes did not come up (see the logs in " f"{out})"
             return result
@@ -322,6 +324,13 @@ def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
         else:
             held_since = None
     return {"reason": f"goal not reached within {scenario.time_limit:.0f} s"}
+
+
+def _print_log_tail(path: Path, lines: int = 8) -> None:
+    """A failed run names its cause where the user looks: the planner's last words."""
+    if path.exists():
+        tail = path.read_text(errors="replace").splitlines()[-lines:]
+        print(f"last lines of {path}:\n" + "\n".join("  " + line for line in tail))
 
 
 def print_summary(result: dict) -> None:

@@ -354,10 +354,11 @@ class Monitor:
             tap.drain()
 
     def _wait_ready(self, deadline: float) -> bool:
-        """Joint states, planner status and a matched goal subscriber, or False."""
+        """Joint states, a planner that has them too, and a matched goal subscriber, or False."""
         while time.time() < deadline and self._alive():
             self._drain()
-            if (self.joints.raw is not None and self.planner_status.message is not None
+            if (self.joints.raw is not None
+                    and planner_has_state(_status_values(self.planner_status.message))
                     and self.goal_pub.get_subscription_count() > 0):
                 return True
             time.sleep(0.02)
@@ -366,7 +367,8 @@ class Monitor:
     def _not_ready(self) -> str:
         missing = [what for what, ok in (
             (topics.JOINT_STATES, self.joints.raw is not None),
-            (topics.PLANNER_STATUS, self.planner_status.message is not None),
+            (f"{topics.PLANNER_STATUS} with a fresh joint state",
+             planner_has_state(_status_values(self.planner_status.message))),
             ("a goal_pose subscriber", self.goal_pub.get_subscription_count() > 0)) if not ok]
         return ", ".join(missing) or "nothing"
 
@@ -554,6 +556,21 @@ class Monitor:
                 "violations": sum(counts[k] for k in VIOLATIONS),
                 "limit_peaks_so_far": peaks,
                 "limit_max_gap_ms": limits.get("max_gap_ms", math.nan)}
+
+
+PLANNER_STATE_AGE_S = 0.5
+"""s: a goal goes out once the planner's own status shows a joint state this fresh (its
+joint_state_timeout_s). A state seen by the sender is not enough: on a busy machine the
+planner's /joint_states subscription matched seconds later and it refused the goal (CI, demo
+D-001)."""
+
+
+def planner_has_state(values: dict) -> bool:
+    """Whether planner status values (key → text) show a fresh joint state."""
+    try:
+        return float(values.get("joint_state_age_s", "inf")) < PLANNER_STATE_AGE_S
+    except ValueError:
+        return False
 
 
 def _status_values(msg) -> dict:
