@@ -12,7 +12,6 @@ result says so and the caller holds position.
 
 from __future__ import annotations
 
-import heapq
 import math
 import time
 from collections.abc import Sequence
@@ -24,6 +23,7 @@ from scipy.spatial import cKDTree
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, START_LIMIT_TOLERANCE, JointLimits
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
+from damon_ros.planning.graph_search import GraphSearch
 
 
 @dataclass(frozen=True)
@@ -123,6 +123,7 @@ class _Query:
         self.scene = scene
         self.start_margin = planner._start_margin(q_start, scene.ahead)
         self.valid: dict[tuple[int, int], bool] = {}
+        self.search = GraphSearch(*planner.csr) if planner.graph is not None else None
         self.checked = 0
         self.rejected = 0
         self.iterations = 0
@@ -147,7 +148,13 @@ class _Query:
             self.valid[key] = known
             self.checked += 1
             self.rejected += not known
+            if not known and key[0] >= 0:
+                self.search.block(*key)
         return known
+
+    def link_weight(self, u: int, v: int, w: float) -> float:
+        """``w`` for a start or goal link not known to be blocked; inf for one that is."""
+        return math.inf if self.valid.get((u, v) if u < v else (v, u)) is False else w
 
     def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool,
                           last: bool = False) -> bool:
@@ -186,6 +193,11 @@ class GraphPlanner:
         # graph None: a subclass finds routes another way (the OMPL baselines)
         self._safe_ids = np.flatnonzero(graph.safe) if graph is not None else np.zeros(0, int)
         self._tree = cKDTree(graph.q[self._safe_ids]) if graph is not None else None
+        # the adjacency in the compiled search's dtypes, converted once
+        self.csr = None if graph is None else (
+            np.ascontiguousarray(graph.indptr, np.int64),
+            np.ascontiguousarray(graph.indices, np.int64),
+            np.ascontiguousarray(graph.weights, np.float64))
         self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
         self._fallback_failures = 0  # toward the current goal: escalates the budget
 
@@ -523,7 +535,8 @@ class GraphPlanner:
 
     def _lazy_astar(self, query: _Query, active: np.ndarray) -> list[int] | None:
         """A* over active safe vertices plus start and goal; edges on the found path are
-        checked in order and a blocked one removed before searching again (lazy PRM)."""
+        checked in order and a blocked one removed before searching again (lazy PRM). The
+        A* itself is compiled (`graph_search`): one iteration is well under a millisecond."""
         g = self.graph
         active_ids = np.flatnonzero(active)
         start_links = self._attach(query.q_start, active_ids)
@@ -533,53 +546,15 @@ class GraphPlanner:
         while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
                                         and time.perf_counter() < query.deadline):
             query.iterations += 1
-            path = self._astar(query, active, start_links, goal_links, direct, heuristic)
+            path = query.search.shortest(
+                active, heuristic, [(v, query.link_weight(_Query.START, v, w))
+                                    for v, w in start_links],
+                {v: query.link_weight(v, _Query.GOAL, w) for v, w in goal_links.items()},
+                query.link_weight(_Query.START, _Query.GOAL, direct))
             if path is None:
                 return None
             if all(query.edge_free(u, v) for u, v in zip(path, path[1:], strict=False)):
                 return path
-        return None
-
-    def _astar(self, query, active, start_links, goal_links, direct, heuristic):
-        g = self.graph
-        start, goal = _Query.START, _Query.GOAL
-        cost = {start: 0.0}
-        parent: dict[int, int] = {}
-        closed = set()
-        heap = [(direct, start)]
-        valid = query.valid
-
-        def relax(u: int, v: int, w: float, h: float) -> None:
-            key = (u, v) if u < v else (v, u)
-            if valid.get(key) is False or v in closed:
-                return
-            c = cost[u] + w
-            if c < cost.get(v, math.inf):
-                cost[v] = c
-                parent[v] = u
-                heapq.heappush(heap, (c + h, v))
-
-        while heap:
-            _, u = heapq.heappop(heap)
-            if u in closed:
-                continue
-            if u == goal:
-                path = [goal]
-                while path[-1] != start:
-                    path.append(parent[path[-1]])
-                return path[::-1]
-            closed.add(u)
-            if u == start:
-                relax(u, goal, direct, 0.0)
-                for v, w in start_links:
-                    relax(u, v, w, heuristic[v])
-                continue
-            if u in goal_links:
-                relax(u, goal, goal_links[u], 0.0)
-            lo, hi = g.indptr[u], g.indptr[u + 1]
-            for v, w in zip(g.indices[lo:hi].tolist(), g.weights[lo:hi].tolist(), strict=True):
-                if active[v]:
-                    relax(u, v, w, heuristic[v])
         return None
 
     def _shortcut(self, path: np.ndarray, query: _Query) -> np.ndarray:
