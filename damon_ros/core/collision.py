@@ -31,7 +31,7 @@ import numpy as np
 import pinocchio as pin
 
 from damon_ros.core import sphere_kernels
-from damon_ros.core.kinematics import Chain, description_dir, load_arm
+from damon_ros.core.kinematics import FINGER_OPENING, Chain, description_dir, load_arm
 from damon_ros.core.shapes import Shape, points_box
 
 SPHERE_SPACING = 0.04
@@ -304,11 +304,12 @@ def containment_inflation(spheres: SphereModel, meshes: pin.GeometryModel) -> np
 
 
 @cache
-def panda_inflation(spacing: float = SPHERE_SPACING) -> np.ndarray:
+def panda_inflation(spacing: float = SPHERE_SPACING,
+                    finger_opening: float = FINGER_OPENING) -> np.ndarray:
     """:func:`containment_inflation` of the Panda's sphere model against its meshes (computed
-    once per process, ~0.3 s)."""
-    model, geom = load_arm("panda_collision.urdf")
-    meshes = convex_meshes(*load_arm("panda.urdf"))
+    once per process and finger opening, ~0.3 s)."""
+    model, geom = load_arm("panda_collision.urdf", finger_opening)
+    meshes = convex_meshes(*load_arm("panda.urdf", finger_opening))
     grow = containment_inflation(SphereModel(model, geom, 0.0, spacing=spacing), meshes)
     grow.flags.writeable = False
     return grow

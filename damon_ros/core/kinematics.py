@@ -36,8 +36,11 @@ def description_dir() -> tuple[Path, Path]:
     return share, panda
 
 
-def load_arm(urdf_name: str) -> tuple[pin.Model, pin.GeometryModel]:
-    """The 7-joint arm (fingers locked at FINGER_OPENING) with its collision geometry."""
+def load_arm(urdf_name: str, finger_opening: float = FINGER_OPENING
+             ) -> tuple[pin.Model, pin.GeometryModel]:
+    """The 7-joint arm (each finger locked ``finger_opening`` m from the hand's centre) with
+    its collision geometry. A benchmark may define a wider opening than the Panda's joint
+    limit (MotionBenchMaker: 0.065 m); its problems are scored with it."""
     share, panda = description_dir()
     urdf = str(panda / "urdf" / urdf_name)
     full = pin.buildModelFromUrdf(urdf)
@@ -45,7 +48,7 @@ def load_arm(urdf_name: str) -> tuple[pin.Model, pin.GeometryModel]:
     q_ref = pin.neutral(full)
     fingers = [full.getJointId(f"panda_finger_joint{i}") for i in (1, 2)]
     for j in fingers:
-        q_ref[full.joints[j].idx_q] = FINGER_OPENING
+        q_ref[full.joints[j].idx_q] = finger_opening
     return pin.buildReducedModel(full, geom, fingers, q_ref)
 
 

@@ -31,7 +31,7 @@ from damon_ros.core.collision import (
     obstacle_geometry,
     panda_inflation,
 )
-from damon_ros.core.kinematics import TCP_FRAME, Chain, load_arm
+from damon_ros.core.kinematics import FINGER_OPENING, TCP_FRAME, Chain, load_arm
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, JointLimits, joint_limits
 from damon_ros.core.shapes import Shape
 
@@ -86,17 +86,22 @@ class Robot:
     :meth:`in_collision`, :meth:`segment_free` and :meth:`path_free` use: ``"mesh"`` (exact)
     or ``"fast"`` (conservative spheres). Kinematics, :meth:`ik` and the self-collision
     checks are the same for both (self-collision is always on the exact meshes, with the
-    SRDF's disabled pairs). ``profile`` picks the joint limits (``"panda"`` or ``"fr3"``)."""
+    SRDF's disabled pairs). ``profile`` picks the joint limits (``"panda"`` or ``"fr3"``);
+    ``finger_opening`` where each finger is locked (m, both models)."""
 
     def __init__(self, collision: str = "fast", profile: str = "panda",
-                 fast_margin: float = FAST_MODEL_MARGIN) -> None:
+                 fast_margin: float = FAST_MODEL_MARGIN,
+                 finger_opening: float = FINGER_OPENING) -> None:
         if collision not in ("fast", "mesh"):
             raise ValueError(f"collision model must be 'fast' or 'mesh', got {collision!r}")
         if not 0.0 <= fast_margin < 0.1:
             raise ValueError(f"fast_margin must be in [0, 0.1) m, got {fast_margin}")
         self.collision = collision
         self.limits: JointLimits = joint_limits(profile)
-        model, mesh_geom = load_arm("panda.urdf")
+        if not 0.0 <= finger_opening <= 0.1:
+            raise ValueError(f"finger_opening must be in [0, 0.1] m, got {finger_opening}")
+        self.finger_opening = finger_opening
+        model, mesh_geom = load_arm("panda.urdf", finger_opening)
         self.model, self.data = model, model.createData()
         self.mesh_geom = convex_meshes(model, mesh_geom)
         self.mesh_data = pin.GeometryData(self.mesh_geom)
@@ -113,8 +118,9 @@ class Robot:
     @cached_property
     def spheres(self) -> SphereModel:
         """The fast model, built on first use (a mesh-only robot never needs it)."""
-        model, geom = load_arm("panda_collision.urdf")
-        return SphereModel(model, geom, self.fast_margin, inflation=panda_inflation())
+        model, geom = load_arm("panda_collision.urdf", self.finger_opening)
+        return SphereModel(model, geom, self.fast_margin,
+                           inflation=panda_inflation(finger_opening=self.finger_opening))
 
     def _mesh_bounds(self) -> None:
         """Bounding sphere of each mesh (centre fixed in its joint's frame), to skip GJK on

@@ -207,7 +207,8 @@ class GraphPlanner:
         if self._exact is None:
             from damon_ros.core.robot import Robot
 
-            self._exact = Robot("mesh", self.limits.profile)
+            self._exact = Robot("mesh", self.limits.profile,
+                                finger_opening=self.robot.finger_opening)
         return self._exact
 
     def warm_up(self) -> None:

@@ -97,9 +97,10 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
 def run_mbm(path, planners, model, out, args) -> list[dict]:
     """Plan once per MotionBenchMaker problem; verify the path on the exact meshes."""
     from damon_ros.core.robot import Robot
-    from damon_ros.tools.mbm import load_problems
+    from damon_ros.tools.mbm import FINGER_OPENING, load_problems
 
-    fast, mesh = Robot("fast"), Robot("mesh")
+    fast = Robot("fast", finger_opening=FINGER_OPENING)
+    mesh = Robot("mesh", finger_opening=FINGER_OPENING)
     records = []
     for set_name, scenario in load_problems(path, fast, args.per_set):
         if isinstance(scenario, Exception):
