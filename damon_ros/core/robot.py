@@ -29,7 +29,6 @@ from damon_ros.core.collision import (
     link_name,
     local_vertices,
     obstacle_geometry,
-    panda_inflation,
 )
 from damon_ros.core.kinematics import TCP_FRAME, Chain, load_arm
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, JointLimits, joint_limits
@@ -86,10 +85,12 @@ class Robot:
     :meth:`in_collision`, :meth:`segment_free` and :meth:`path_free` use: ``"mesh"`` (exact)
     or ``"fast"`` (conservative spheres). Kinematics, :meth:`ik` and the self-collision
     checks are the same for both (self-collision is always on the exact meshes, with the
-    SRDF's disabled pairs). ``profile`` picks the joint limits (``"panda"`` or ``"fr3"``)."""
+    SRDF's disabled pairs). ``profile`` picks the joint limits (``"panda"`` or ``"fr3"``).
+    ``exact_budget`` caps the mesh queries one fast segment check may spend on states the
+    spheres refuse by less than their own excess (:meth:`_exact_band`; 0 turns it off)."""
 
     def __init__(self, collision: str = "fast", profile: str = "panda",
-                 fast_margin: float = FAST_MODEL_MARGIN) -> None:
+                 fast_margin: float = FAST_MODEL_MARGIN, exact_budget: int = 32) -> None:
         if collision not in ("fast", "mesh"):
             raise ValueError(f"collision model must be 'fast' or 'mesh', got {collision!r}")
         if not 0.0 <= fast_margin < 0.1:
@@ -106,15 +107,16 @@ class Robot:
         if self.tcp_id >= model.nframes:
             raise ValueError(f"the Panda description has no {TCP_FRAME} frame")
         self.fast_margin = fast_margin
+        self.exact_budget = exact_budget
         self.shoulder, self.reach = _reach_bound(model, self.tcp_id)
         self._request = coal.DistanceRequest()
         self._request.enable_signed_distance = True
 
     @cached_property
     def spheres(self) -> SphereModel:
-        """The fast model, built on first use (a mesh-only robot never needs it)."""
-        model, geom = load_arm("panda_collision.urdf")
-        return SphereModel(model, geom, self.fast_margin, inflation=panda_inflation())
+        """The fast model, built on first use (a mesh-only robot never needs it): the sphere
+        set fitted to the meshes (``config/panda_spheres.json``), grown by ``fast_margin``."""
+        return SphereModel.fitted(self.fast_margin)
 
     def _mesh_bounds(self) -> None:
         """Bounding sphere of each mesh (centre fixed in its joint's frame), to skip GJK on
@@ -399,14 +401,41 @@ class Robot:
         if self.collision == "mesh":
             Q = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)
             return all(self._mesh_clearance(q, obstacles).distance > margin for q in Q)
-        return self.spheres.segment_clear(q0, q1, n, obstacles, margin)
+        if self.spheres.segment_clear(q0, q1, n, obstacles, margin):
+            return True
+        return self._exact_band(q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0),
+                                obstacles, margin)
+
+    @property
+    def contact_band(self) -> float:
+        """How far (m) the fast model can under-state the mesh distance: its fit bound (the
+        largest bulge of a sphere beyond the meshes) plus its margin. A fast refusal by less
+        than this may be wrong, so :meth:`_exact_band` lets the meshes decide it."""
+        bulge = self.spheres.bulge
+        return 0.0 if bulge is None else float(np.max(bulge) + self.fast_margin) + 1e-4
+
+    def _exact_band(self, Q: np.ndarray, obstacles: Sequence[Shape], margin: float) -> bool:
+        """Exact decisions near contact: states the fast model refuses by less than
+        :attr:`contact_band` are decided by the meshes (coal), each must keep more than
+        ``margin`` there. A state refused by more is refused outright, and at most
+        :attr:`exact_budget` mesh queries are spent per call (beyond that: refused), so the
+        mesh query only runs in that thin band."""
+        if self.exact_budget <= 0:
+            return False
+        d = self.spheres.distances(Q, obstacles)
+        near = np.flatnonzero(d <= margin)
+        if np.any(d[near] <= margin - self.contact_band) or len(near) > self.exact_budget:
+            return False
+        return all(self._mesh_clearance(Q[i], obstacles).distance > margin for i in near)
 
     def path_free(self, path, obstacles: Sequence[Shape], margin: float = 0.0,
                   resolution: float = 0.02) -> bool:
         """:meth:`segment_free` for every segment of a (K, 7) waypoint path."""
         path = self._check_batch(path)
         if len(path) == 1:
-            return not obstacles or bool(self.distances(path, obstacles)[0] > margin)
+            if not obstacles or bool(self.distances(path, obstacles)[0] > margin):
+                return True
+            return self.collision == "fast" and self._exact_band(path, obstacles, margin)
         return all(self.segment_free(a, b, obstacles, margin, resolution)
                    for a, b in zip(path[:-1], path[1:], strict=True))
 
