@@ -293,7 +293,8 @@ def _self_excess(mesh: Robot, models: dict[str, SphereModel], rng: np.random.Gen
 
 def _print_excess(name: str, e: ModelExcess) -> None:
     print(f"  {name:<28} {e.bulge_median * 1e3:>7.1f} {e.bulge_p99 * 1e3:>7.1f} "
-          f"{e.bulge_max * 1e3:>7.1f} {e.excess_max * 1e3:>+9.1f} {e.max_when_touching * 1e3:>+9.1f}")
+          f"{e.bulge_max * 1e3:>7.1f} {e.excess_max * 1e3:>+9.1f} "
+          f"{e.max_when_touching * 1e3:>+9.1f}")
 
 
 def _print_margin(r: MarginReport) -> bool:
