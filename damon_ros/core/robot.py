@@ -90,7 +90,7 @@ class Robot:
     spheres refuse by less than their own excess (:meth:`_exact_band`; 0 turns it off)."""
 
     def __init__(self, collision: str = "fast", profile: str = "panda",
-                 fast_margin: float = FAST_MODEL_MARGIN, exact_budget: int = 32) -> None:
+                 fast_margin: float = FAST_MODEL_MARGIN, exact_budget: int = 64) -> None:
         if collision not in ("fast", "mesh"):
             raise ValueError(f"collision model must be 'fast' or 'mesh', got {collision!r}")
         if not 0.0 <= fast_margin < 0.1:

@@ -250,44 +250,44 @@ def measure_margin(samples: int = 10_000, seed: int = 7, spread: float = 0.15,
 
 def _self_excess(mesh: Robot, models: dict[str, SphereModel], rng: np.random.Generator,
                  samples: int) -> tuple[int, dict[str, ModelExcess]]:
-    """Per enabled link pair: the sphere model's pair distance (min over its spheres of the
-    two links) against coal's mesh-pair distance, on random configurations."""
+    """Per joint pair (spheres are fixed to joints, and one sphere may cover two meshes of
+    one joint, e.g. link 7 and the hand): the sphere model's distance between the two
+    joints' spheres against coal's least distance over the SRDF-enabled mesh pairs between
+    them, on random configurations."""
     geom = mesh.mesh_geom
-    links = [mesh.model.frames[o.parentFrame].name for o in geom.geometryObjects]
-    link_pairs = sorted({tuple(sorted((links[p.first], links[p.second])))
-                         for p in geom.collisionPairs})
+    joint = [o.parentJoint for o in geom.geometryObjects]
+    pairs = sorted({tuple(sorted((joint[p.first], joint[p.second])))
+                    for p in geom.collisionPairs if joint[p.first] != joint[p.second]})
     req = coal.DistanceRequest()
+    req.enable_signed_distance = True
     Q = rng.uniform(mesh.limits.lower, mesh.limits.upper, (samples, 7))
     d_mesh = []
     for q in Q:
         pin.updateGeometryPlacements(mesh.model, mesh.data, geom, mesh.mesh_data, q)
-        best = {lp: np.inf for lp in link_pairs}
+        best = dict.fromkeys(pairs, np.inf)
         for p in geom.collisionPairs:
-            a, b = geom.geometryObjects[p.first], geom.geometryObjects[p.second]
+            jp = tuple(sorted((joint[p.first], joint[p.second])))
+            if jp not in best:
+                continue
             ma, mb = mesh.mesh_data.oMg[p.first], mesh.mesh_data.oMg[p.second]
-            res = coal.DistanceResult()
-            d = coal.distance(a.geometry, coal.Transform3s(ma.rotation, ma.translation),
-                              b.geometry, coal.Transform3s(mb.rotation, mb.translation), req, res)
-            lp = tuple(sorted((links[p.first], links[p.second])))
-            best[lp] = min(best[lp], d)
-        d_mesh.append([best[lp] for lp in link_pairs])
+            d = coal.distance(geom.geometryObjects[p.first].geometry,
+                              coal.Transform3s(ma.rotation, ma.translation),
+                              geom.geometryObjects[p.second].geometry,
+                              coal.Transform3s(mb.rotation, mb.translation), req,
+                              coal.DistanceResult())
+            best[jp] = min(best[jp], d)
+        d_mesh.append([best[jp] for jp in pairs])
     d_mesh = np.array(d_mesh).ravel()
     out = {}
     for name, m in models.items():
         C = m.world_centers(Q)  # (N, S, 3)
-        links_m = np.array(m.links)
         cols = []
-        for la, lb in link_pairs:
-            ia, ib = np.flatnonzero(links_m == la), np.flatnonzero(links_m == lb)
-            if not len(ia) or not len(ib):
-                cols.append(np.full(len(Q), np.inf))
-                continue
+        for ja, jb in pairs:
+            ia, ib = np.flatnonzero(m.joints == ja), np.flatnonzero(m.joints == jb)
             d = (np.linalg.norm(C[:, ia, None] - C[:, None, ib], axis=-1)
                  - m.radii[ia][:, None] - m.radii[ib][None])
             cols.append(d.min(axis=(1, 2)))
-        fast = np.stack(cols, axis=1).ravel()
-        ok = np.isfinite(fast)
-        out[name] = _excess(fast[ok], d_mesh[ok])
+        out[name] = _excess(np.stack(cols, axis=1).ravel(), d_mesh)
     return len(d_mesh), out
 
 
@@ -311,7 +311,7 @@ def _print_margin(r: MarginReport) -> bool:
         print(f" {kind} obstacles only:")
         for name, e in per.items():
             _print_excess(name, e)
-    print(f" self-collision, {r.self_pairs} (configuration, link pair) samples, sphere pair − "
+    print(f" self-collision, {r.self_pairs} (configuration, joint pair) samples, sphere pair − "
           "mesh pair distance:")
     for name, e in r.self_models.items():
         _print_excess(name, e)

@@ -11,6 +11,7 @@ from damon_ros.core.collision import (
     FAST_MODEL_MARGIN,
     SphereModel,
     convex_meshes,
+    local_vertices,
     panda_inflation,
     surface_points,
 )
@@ -32,24 +33,24 @@ def fast() -> Robot:
 
 
 def test_fitted_spheres_contain_every_mesh_point(mesh, fast):
-    """Dense surface points (2 mm triangles, finer than the fit's) lie inside a sphere of the
-    raw fitted set — before FAST_MODEL_MARGIN — in random configurations."""
+    """Dense surface points (5 mm triangles, finer than the fit's 20 mm) of every mesh lie
+    inside a sphere of the raw fitted set (before FAST_MODEL_MARGIN) on the same joint —
+    rigid together, so one check in the joint frame holds in every configuration."""
     raw = SphereModel.fitted(0.0)
-    rng = np.random.default_rng(8)
-    pts = [surface_points(o.geometry, 0.002) for o in mesh.mesh_geom.geometryObjects]
-    for q in rng.uniform(mesh.limits.lower, mesh.limits.upper, (3, 7)):
-        pin.updateGeometryPlacements(mesh.model, mesh.data, mesh.mesh_geom, mesh.mesh_data, q)
-        world = np.vstack([p @ m.rotation.T + m.translation
-                           for p, m in zip(pts, mesh.mesh_data.oMg, strict=True)])
-        centers = raw.world_centers(q[None])[0]
-        inside = (np.linalg.norm(world[:, None] - centers[None], axis=2) - raw.radii).min(axis=1)
-        assert inside.max() <= 0.0
+    for o in mesh.mesh_geom.geometryObjects:
+        m = o.placement
+        pts = surface_points(o.geometry, 0.005) @ m.rotation.T + m.translation
+        on = raw.joints == o.parentJoint
+        inside = (np.linalg.norm(pts[:, None] - raw.centers[on][None], axis=2)
+                  - raw.radii[on]).min(axis=1)
+        assert inside.max() <= 0.0, o.name
     assert np.allclose(fast.spheres.radii, raw.radii + FAST_MODEL_MARGIN)
 
 
 def test_recorded_bulge_bounds_the_excess():
     """radius − depth of the centre (recomputed from the meshes) is the recorded bulge, and
-    the whole set is tight: ~60 spheres, median bulge a few mm (the old model: 30 mm)."""
+    the whole set is tight: no sphere reaches more than 15 mm beyond the meshes (the old
+    model's grew by up to 30 mm)."""
     model, geom = load_arm("panda.urdf")
     hulls = _hulls(model, convex_meshes(model, geom))
     raw = SphereModel.fitted(0.0)
@@ -59,8 +60,10 @@ def test_recorded_bulge_bounds_the_excess():
         depth = _depth(hs, raw.centers[on])
         assert np.all(depth > 0.0)  # centres inside the meshes
         assert np.allclose(raw.radii[on] - depth, raw.bulge[on], atol=1e-6)
-    assert 30 <= len(raw.radii) <= 120
-    assert np.median(raw.bulge) <= 0.008
+    # the shipped fit (bound 10 mm) needs 576 spheres, not VAMP's ~60: a worst-case bound
+    # is costly on flat faces; the count is pinned here so that a refit is a visible change
+    assert len(raw.radii) <= 600
+    assert raw.bulge.max() <= 0.015
     assert panda_inflation().max() > 2 * raw.bulge.max()
 
 
@@ -81,7 +84,7 @@ def _slot(mesh: Robot, q: np.ndarray, gap: float) -> list[Shape]:
     slot 2·gap wider than the arm."""
     pin.updateGeometryPlacements(mesh.model, mesh.data, mesh.mesh_geom, mesh.mesh_data, q)
     ys = np.concatenate([
-        (np.asarray(o.geometry.points()) @ m.rotation.T + m.translation)[:, 1]
+        (local_vertices(o.geometry) @ m.rotation.T + m.translation)[:, 1]
         for o, m in zip(mesh.mesh_geom.geometryObjects, mesh.mesh_data.oMg, strict=True)])
     t = 0.02
     return [Shape("box", (2.0, t, 2.0), [0.3, ys.max() + gap + t / 2, 0.5]),
