@@ -233,7 +233,7 @@ class SphereModel:
         ``config/panda_spheres.json``: it contains the meshes by construction, so no
         containment inflation is needed, only ``margin``."""
         from damon_ros.core.resources import config_file
-        from damon_ros.core.sphere_fit import SphereSet
+        from damon_ros.core.sphere_set import SphereSet
 
         s = SphereSet.load(path or config_file(FITTED_SPHERES))
         out = cls.__new__(cls)

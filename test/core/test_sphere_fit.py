@@ -19,7 +19,8 @@ from damon_ros.core.kinematics import load_arm
 from damon_ros.core.limits import READY
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
-from damon_ros.core.sphere_fit import SphereSet, _depth, _hulls
+from damon_ros.core.sphere_fit import _depth, _hulls
+from damon_ros.core.sphere_set import SphereSet
 
 
 @pytest.fixture(scope="module")
