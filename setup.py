@@ -23,7 +23,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")
+         + glob("config/*.json")),
         (f"share/{PACKAGE}/models/default", glob("models/default/*")),
     ],
     package_data={PACKAGE: ["py.typed"]},

@@ -7,12 +7,15 @@ Two collision models, both from ``example-robot-data``:
   the same vertices and volume), so each is loaded as a coal ``Convex`` (:func:`convex_meshes`):
   the same geometry, but GJK/EPA gives exact distances, penetration depth and witness points
   in a few µs per pair instead of a BVH traversal.
-- ``fast`` — the sphere/cylinder model of ``panda_collision.urdf``, rebuilt as spheres (each
-  cylinder covered by overlapping spheres, :class:`SphereModel`) and checked in batches by the
-  compiled kernels of :mod:`damon_ros.core.sphere_kernels`. That model does NOT contain the
-  meshes everywhere (its forearm misses the link-5 mesh by 3 cm), so spheres first grow until
-  they contain every mesh surface point (:func:`containment_inflation`), then all grow by
-  :data:`FAST_MODEL_MARGIN`: "fast says free" implies "meshes say free".
+- ``fast`` — spheres fixed to the joint frames (:class:`SphereModel`), checked in batches by
+  the compiled kernels of :mod:`damon_ros.core.sphere_kernels`. The shipped set
+  (:data:`FITTED_SPHERES`, :meth:`SphereModel.fitted`) is fitted to the meshes by
+  :mod:`damon_ros.core.sphere_fit`: it contains every mesh surface triangle and bulges at most
+  its fit bound beyond them, then all spheres grow by :data:`FAST_MODEL_MARGIN`: "fast says
+  free" implies "meshes say free". The older model — the sphere/cylinder model of
+  ``panda_collision.urdf`` rebuilt as spheres, which does NOT contain the meshes (its forearm
+  misses the link-5 mesh by 3 cm) and so is grown until it does (:func:`containment_inflation`)
+  — is kept for comparison (``damon-ros bench-robot --margin``).
 
 Obstacles become coal geometry (:func:`obstacle_geometry`) for the meshes and numpy signed
 distance fields (:class:`Sdf`) for the spheres' witness points. The queries on these models
@@ -35,23 +38,25 @@ from damon_ros.core.kinematics import FINGER_OPENING, Chain, description_dir, lo
 from damon_ros.core.shapes import Shape, points_box
 
 SPHERE_SPACING = 0.04
-"""Largest gap (m) between the spheres that cover one cylinder of the fast model; each such
-sphere grows by ``hypot(r, gap / 2) - r`` (≤ 2.2 mm for the Panda's 9 cm links) to cover
-the cylinder between sphere centres."""
-FAST_MODEL_MARGIN = 0.0065
-"""Growth (m) of every fast-model sphere beyond containing the meshes. Containment is checked
-on surface points at most 2.3 mm from any mesh point (:data:`SURFACE_STEP`), so wherever the
-fast distance is ≥ 0 the meshes are ≥ 4 mm from the obstacle by construction. Measured with
-``damon-ros bench-robot --margin 10000`` (10,000 random configurations, each with a random
-sphere or box near a random surface point of the arm; the meshes touch it in 4,600): the
-URDF's spheres as they are exceed the mesh distance by up to 8.5 mm and say "free" (+8.6 mm)
-where the meshes touch; after the containment growth and before this margin, fast − mesh
-is at most −1.3 mm (median −28 mm) where apart and fast ≤ −2.5 mm where the meshes touch:
-"fast > 0 ⇒ mesh > 0" held on every sample, with this margin as reserve."""
+"""Largest gap (m) between the spheres that cover one cylinder of the URDF's sphere model;
+each such sphere grows by ``hypot(r, gap / 2) - r`` (≤ 2.2 mm for the Panda's 9 cm links) to
+cover the cylinder between sphere centres."""
+FITTED_SPHERES = "panda_spheres.json"
+"""The shipped sphere set fitted to the meshes (``config/``), see
+:mod:`damon_ros.core.sphere_fit`; the fast model of :class:`damon_ros.core.robot.Robot`."""
+FAST_MODEL_MARGIN = 0.002
+"""Growth (m) of every fast-model sphere beyond containing the meshes. The fitted set
+contains every mesh surface triangle exactly (not just samples of it), so this is a reserve,
+not a correction: wherever the fast distance is ≥ 0 the meshes are ≥ 2 mm from the obstacle.
+Measured with ``damon-ros bench-robot --margin 100000`` (random configurations, each with a
+random sphere, box, cylinder or point set near a random surface point of the arm): fast ≤
+mesh on every sample, see docs/BENCHMARKS.md. (The old model — ``panda_collision.urdf``
+grown to contain the meshes — needed 6.5 mm here for its 2.3 mm surface sampling and its
+spheres reached up to 30 mm beyond the meshes.)"""
 SURFACE_STEP = 0.004
-"""Largest edge (m) of the triangles the mesh surfaces are cut into to check that the fast
-model's spheres contain them; every surface point is within ``SURFACE_STEP / √3`` (2.3 mm)
-of a checked point, which :data:`FAST_MODEL_MARGIN` covers."""
+"""Largest edge (m) of the triangles the mesh surfaces are cut into to check that the old
+model's spheres contain them (:func:`containment_inflation`); every surface point is within
+``SURFACE_STEP / √3`` (2.3 mm) of a checked point."""
 
 
 def link_name(model: pin.Model, obj: pin.GeometryObject) -> str:
@@ -219,31 +224,72 @@ class SphereModel:
                 radii.append(r)
                 joints.append(obj.parentJoint)
                 links.append(link_name(model, obj))
-        self.centers, self.joints, self.links = np.array(centers), np.array(joints), links
+        self._setup(model, np.array(joints), np.array(centers), np.array(radii), links,
+                    inflation, margin)
+
+    @classmethod
+    def fitted(cls, margin: float, path: str | None = None,
+               finger_opening: float = FINGER_OPENING) -> SphereModel:
+        """The sphere set fitted to the meshes (:mod:`damon_ros.core.sphere_fit`), shipped as
+        ``config/panda_spheres.json``: it contains the meshes by construction, so no
+        containment inflation is needed, only ``margin``. The set is fitted with the fingers
+        at :data:`FINGER_OPENING`; for another opening each finger's spheres move rigidly
+        with their finger, as its meshes do."""
+        from damon_ros.core.resources import config_file
+        from damon_ros.core.sphere_set import SphereSet
+
+        s = SphereSet.load(path or config_file(FITTED_SPHERES))
+        model = load_arm("panda.urdf", finger_opening)[0]
+        centers = s.centers
+        if finger_opening != FINGER_OPENING:
+            centers = _moved_with_links(centers, s.links, load_arm("panda.urdf")[0], model)
+        out = cls.__new__(cls)
+        out._setup(model, s.joints, centers, s.radii, list(s.links), None, margin)
+        out.bulge = s.bulge
+        return out
+
+    def _setup(self, model: pin.Model, joints: np.ndarray, centers: np.ndarray,
+               radii: np.ndarray, links: list[str], inflation: np.ndarray | None,
+               margin: float) -> None:
+        self.centers, self.joints, self.links = centers, joints, links
         self.chain = Chain(model)
         self.block = Chain.block(self.joints, self.centers)
-        self.raw_radii = np.array(radii)
+        self.raw_radii = radii
         self.inflation = np.zeros(len(radii)) if inflation is None else inflation
         if self.inflation.shape != self.raw_radii.shape:
             raise ValueError(f"inflation needs {len(radii)} values, got {self.inflation.shape}")
         self.margin = margin
         self.radii = self.raw_radii + self.inflation + margin
+        self.bulge: np.ndarray | None = None  # per sphere, its proven reach beyond the meshes
+        self._pack_cache: tuple | None = None  # (obstacle tuple, its packed arrays)
         self.kernel_args = sphere_kernels.pack_robot(
             np.array([model.jointPlacements[j].rotation for j in range(1, 8)]),
             np.array([model.jointPlacements[j].translation for j in range(1, 8)]),
             self.joints, self.centers, self.radii)
 
+    def _packed(self, obstacles: Sequence[Shape]) -> tuple:
+        """The kernels' arrays of ``obstacles``, kept for the same (immutable) tuple: packing
+        21 shapes costs ~110 µs of Python, several times the kernel's own work, and a search
+        asks about the same obstacle tuple thousands of times. A list is packed afresh (it
+        may be changed in place)."""
+        if not isinstance(obstacles, tuple):
+            return sphere_kernels.pack_obstacles(obstacles)
+        cached = self._pack_cache
+        if cached is None or cached[0] is not obstacles:
+            cached = self._pack_cache = (obstacles, sphere_kernels.pack_obstacles(obstacles))
+        return cached[1]
+
     def distances(self, Q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
         """(N,) minimum signed distance of configurations (N, 7) to the obstacles."""
         return sphere_kernels.batch_distances(np.ascontiguousarray(Q, dtype=float),
-                                              *self.kernel_args,
-                                              *sphere_kernels.pack_obstacles(obstacles))
+                                              *self.kernel_args, *self._packed(obstacles))
 
     def segment_clear(self, q0: np.ndarray, q1: np.ndarray, steps: int,
                       obstacles: Sequence[Shape], margin: float) -> bool:
-        """All ``steps + 1`` evenly spaced states q0→q1 keep more than ``margin``."""
+        """All ``steps + 1`` evenly spaced states q0→q1 keep more than ``margin`` (``steps``
+        0: the state q0 alone)."""
         return bool(sphere_kernels.segment_clear(q0, q1, steps, margin, *self.kernel_args,
-                                                 *sphere_kernels.pack_obstacles(obstacles)))
+                                                 *self._packed(obstacles)))
 
     def world_centers(self, Q: np.ndarray) -> np.ndarray:
         """Sphere centres (N, S, 3) of configurations (N, 7)."""
@@ -313,6 +359,20 @@ def panda_inflation(spacing: float = SPHERE_SPACING,
     grow = containment_inflation(SphereModel(model, geom, 0.0, spacing=spacing), meshes)
     grow.flags.writeable = False
     return grow
+
+
+def _moved_with_links(centers: np.ndarray, links, reference: pin.Model,
+                      model: pin.Model) -> np.ndarray:
+    """Joint-frame points of ``links`` in ``reference`` carried to where those links sit in
+    ``model`` (the same arm with the fingers locked elsewhere)."""
+    out = centers.copy()
+    for name in set(links):
+        old = reference.frames[reference.getFrameId(name)].placement
+        new = model.frames[model.getFrameId(name)].placement
+        move = new * old.inverse()
+        idx = [i for i, link in enumerate(links) if link == name]
+        out[idx] = centers[idx] @ move.rotation.T + move.translation
+    return out
 
 
 def _rigid_local(spheres: SphereModel, joint: int, idx: np.ndarray) -> np.ndarray:

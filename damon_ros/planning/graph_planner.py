@@ -157,16 +157,15 @@ class _Query:
         return math.inf if self.valid.get((u, v) if u < v else (v, u)) is False else w
 
     def segment_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool,
-                          last: bool = False) -> bool:
+                          last: bool = False, exact: bool = True) -> bool:
         """Obstacle check of one segment: a first segment against the obstacles now with the
         start margin, any other against the swept obstacles with the full margin. A last
         segment into a goal that only the exact meshes accept (a grasp pose close to an
         object) is certified on the exact meshes when the conservative model refuses it."""
-        if first:  # swept obstacles too: something falling onto the first segment counts
-            free = self.p.segment_free(q0, q1, self.scene.ahead, self.start_margin)
-        else:
-            free = self.p.segment_free(q0, q1, self.scene.ahead, self.p.config.margin)
-        if not free and last and self.p.goal_exact:
+        margin = self.start_margin if first else self.p.config.margin
+        # first: the swept obstacles too, something falling onto the first segment counts
+        free = self.p.segment_free(q0, q1, self.scene.ahead, margin, exact)
+        if not free and exact and last and self.p.goal_exact:
             free = self.p.exact.segment_free(q0, q1, self.scene.ahead,
                                              margin=self.p.config.exact_goal_margin,
                                              resolution=self.p.config.resolution)
@@ -228,11 +227,13 @@ class GraphPlanner:
 
     # ---- geometry -------------------------------------------------------------------
     def segment_free(self, q0: np.ndarray, q1: np.ndarray, obstacles: Sequence[Shape],
-                     margin: float) -> bool:
-        """A straight joint-space segment is free of obstacles (with margin) and of self-
-        collision at every state no more than ``resolution`` rad apart."""
+                     margin: float, exact: bool = True) -> bool:
+        """A straight joint-space segment is free of obstacles (with margin) at every state
+        no more than ``resolution`` rad apart; ``exact`` False: without the meshes' say in
+        the fast model's contact band (shortcuts: a refusal there costs nothing)."""
         return bool(self.robot.segment_free(q0, q1, obstacles, margin=margin,
-                                            resolution=self.config.resolution))
+                                            resolution=self.config.resolution,
+                                            exact_band=exact))
 
     def clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
         if not obstacles:
@@ -482,14 +483,11 @@ class GraphPlanner:
         source, note for the reason)."""
         if self.config.fallback_budget_s <= 0.0:
             return None, "", ""
-        from damon_ros.planning.sampling import sampling_route
-
         attempt = self._fallback_failures
         budget = self._fallback_budget(attempt)
-        margin = min(self.config.margin, query.start_margin)
-        path = sampling_route("rrtconnect", self.robot, self.limits, query.q_start,
-                              query.q_goal, query.scene.ahead, margin, self.config.resolution,
-                              budget, seed=attempt)
+        path = self._sampling_route(query, budget, seed=attempt)
+        if path is not None and self.config.shortcut:
+            path = self._shortcut(path, query)
         if path is not None and self._certified(path, query):
             self._fallback_failures = 0
             self.experience = [*self.experience, path][-self.config.experience_routes:]
@@ -500,6 +498,30 @@ class GraphPlanner:
                           f"{attempt + 1}; the next one gets "
                           f"{self._fallback_budget(attempt + 1):.2f} s "
                           "and new samples)")
+
+    def _sampling_route(self, query: _Query, budget: float, seed: int) -> np.ndarray | None:
+        """RRT-Connect between the query's ends: compiled over the fast model's spheres
+        (`rrt_connect`), or OMPL where the robot has no sphere model. Edges leaving the
+        start keep its margin, edges leaving the goal half the goal's fast clearance when
+        that is below λ (a goal certified on the meshes), all others λ."""
+        margin = self.config.margin
+        obstacles = query.scene.ahead
+        if self.robot.collision != "fast":
+            from damon_ros.planning.sampling import sampling_route
+
+            return sampling_route("rrtconnect", self.robot, self.limits, query.q_start,
+                                  query.q_goal, obstacles, min(margin, query.start_margin),
+                                  self.config.resolution, budget, seed=seed)
+        from damon_ros.planning.rrt_connect import rrt_connect
+
+        goal_clearance = self.clearance(query.q_goal, obstacles)
+        if goal_clearance <= 0.0:  # the fast model refuses the goal: no tree reaches it
+            return None
+        goal_margin = min(margin, 0.5 * goal_clearance)
+        return rrt_connect(self.robot.spheres, query.q_start, query.q_goal,
+                           self.limits.lower, self.limits.upper, obstacles, margin,
+                           (query.start_margin, goal_margin), self.config.resolution,
+                           budget, seed=seed)
 
     def _fallback_budget(self, attempt: int) -> float:
         """The sampling budget of the ``attempt``-th try (from 0) toward one goal."""
@@ -569,7 +591,7 @@ class GraphPlanner:
                     break
                 query.checked += 1
                 if query.segment_certified(path[i], path[j], first=i == 0,
-                                           last=j == len(path) - 1) and \
+                                           last=j == len(path) - 1, exact=False) and \
                         self.robot.segment_self_collision_free(path[i], path[j]):
                     break
             keep.append(j)
@@ -592,9 +614,11 @@ class GraphPlanner:
                     if not self.limits.within(candidate):
                         continue
                     query.checked += 2
-                    if (query.segment_certified(path[i - 1], candidate, first=i == 1)
+                    if (query.segment_certified(path[i - 1], candidate, first=i == 1,
+                                                exact=False)
                             and query.segment_certified(candidate, path[i + 1], first=False,
-                                                        last=i + 1 == len(path) - 1)
+                                                        last=i + 1 == len(path) - 1,
+                                                        exact=False)
                             and self.robot.segment_self_collision_free(path[i - 1], candidate)
                             and self.robot.segment_self_collision_free(candidate, path[i + 1])):
                         moved = max(moved, float(np.max(np.abs(candidate - path[i]))))

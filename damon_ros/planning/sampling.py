@@ -40,9 +40,11 @@ def sampling_route(algorithm: str, robot, limits: JointLimits, q_start: np.ndarr
     si = ob.SpaceInformation(space)
     margin = max(0.0, margin)
 
+    obstacles = tuple(obstacles)  # one packing for the whole search (`SphereModel._packed`)
+
     def valid(state) -> bool:
         q = np.array([state[i] for i in range(7)])
-        return not obstacles or bool(robot.distances(q[None], obstacles)[0] > margin)
+        return not obstacles or robot.state_free(q, obstacles, margin)
 
     si.setStateValidityChecker(valid)
     # OMPL steps motions by a fraction of the space's extent (L2): ≤ our max-norm step

@@ -43,20 +43,29 @@ class _PlanOnce:
         return None
 
 
-def make_runtime(name: str, model, fast, seed: int, solve_time: float):
-    from damon_ros.planning.graph_planner import GraphPlanner
+MBM_MARGIN = 0.0
+"""λ (m) for MotionBenchMaker unless ``--margin`` says otherwise: its scenes are exact and
+static, and its validity is no contact (margin 0) on the meshes; the fast model already
+contains them (plus 2 mm). λ = 10 mm, the node's default, is reserve for perception and
+moving obstacles, and closes grasp goals the data set places 8-30 mm from an object."""
+
+
+def make_runtime(name: str, model, fast, seed: int, solve_time: float,
+                 margin: float | None = None):
+    from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
     from damon_ros.planning.ompl_baseline import OmplPlanner
     from damon_ros.planning.reactive import ReactivePlanner
 
+    config = PlannerConfig() if margin is None else PlannerConfig(margin=margin)
     if name in ("damon", "damon-noreplan"):
-        planner = GraphPlanner(model.graph, fast, fast.limits)
+        planner = GraphPlanner(model.graph, fast, fast.limits, config)
         settings = {"graph_vertices": model.graph.n_vertices, "margin_m": planner.config.margin,
                     "resolution_rad": planner.config.resolution,
                     "time_budget_s": planner.config.time_budget_s,
                     "fallback_budget_s": planner.config.fallback_budget_s,
                     "model": model.directory.name}
     else:
-        planner = OmplPlanner(name, fast, fast.limits, solve_time=solve_time, seed=seed)
+        planner = OmplPlanner(name, fast, fast.limits, config, solve_time=solve_time, seed=seed)
         settings = planner.settings()
     planner.warm_up()
     runtime = ReactivePlanner(planner)
@@ -73,7 +82,8 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     records = []
     for scenario in scenarios:
         for name in planners:
-            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time)
+            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time,
+                                             args.margin)
             t0 = time.perf_counter()
             try:
                 record = run_scenario(scenario, runtime, name, mesh, fast, config).as_json()
@@ -113,7 +123,9 @@ def run_mbm(path, planners, model, out, args) -> list[dict]:
         for name in planners:
             if name == "damon-noreplan":
                 continue  # identical to damon when nothing moves
-            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time)
+            margin = MBM_MARGIN if args.margin is None else args.margin
+            runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time,
+                                             margin)
             t0 = time.perf_counter()
             result = runtime.planner.plan(scenario.start, scenario.goal.joints, obstacles)
             elapsed = time.perf_counter() - t0
@@ -185,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--latency", type=float, default=0.03, help="perception latency (s)")
     parser.add_argument("--noise", type=float, default=0.0, help="obstacle position noise (m)")
     parser.add_argument("--solve-time", type=float, default=1.0, help="OMPL budget per plan (s)")
+    parser.add_argument("--margin", type=float, default=None,
+                        help="λ (m) for every planner (default: the planner's 0.01 on "
+                             f"scenario files, {MBM_MARGIN} on MotionBenchMaker problems)")
     parser.add_argument("--per-set", type=int, default=None,
                         help="at most this many MotionBenchMaker problems per set")
     parser.add_argument("--profile", choices=PROFILES, default="panda",
@@ -193,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    if args.margin is not None and not 0.0 <= args.margin <= 0.5:
+        parser.error("--margin must be in [0, 0.5] m")
     planners = [p.strip() for p in args.planners.split(",") if p.strip()]
     unknown = sorted(set(planners) - set(PLANNERS))
     if unknown:

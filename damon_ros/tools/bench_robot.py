@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import coal
 import numpy as np
 import pinocchio as pin
 
@@ -141,6 +142,9 @@ class ModelExcess:
     excess_p99: float
     excess_median: float
     max_when_touching: float  # largest fast distance where the meshes touch the obstacle
+    bulge_median: float  # mesh - fast where apart: how much the spheres exceed the meshes
+    bulge_p99: float
+    bulge_max: float
 
     @property
     def required(self) -> float:
@@ -152,23 +156,37 @@ class ModelExcess:
 class MarginReport:
     samples: int
     touching: int  # samples where the meshes touch or penetrate the obstacle
-    urdf: ModelExcess  # the spheres of panda_collision.urdf as they are
-    grown: ModelExcess  # after the containment growth, before FAST_MODEL_MARGIN
+    models: dict[str, ModelExcess]  # each sphere model, without FAST_MODEL_MARGIN
+    by_kind: dict[str, dict[str, ModelExcess]]  # the same per obstacle kind
+    self_pairs: int  # link pairs (configuration × SRDF-enabled pair) compared for self-collision
+    self_models: dict[str, ModelExcess]  # sphere-pair vs mesh-pair distance
 
 
 def _random_obstacle(rng: np.random.Generator, anchor: np.ndarray, outward: np.ndarray,
                      spread: float) -> Shape:
-    """A sphere or box of random size and orientation, its surface roughly -5 mm to
-    ``spread`` m out from ``anchor`` along a direction scattered about ``outward``."""
+    """A sphere, box, cylinder or point set of random size and orientation, its surface
+    roughly -5 mm to ``spread`` m out from ``anchor`` along a direction scattered about
+    ``outward``."""
     direction = outward + 0.4 * rng.normal(size=3)
     direction /= np.linalg.norm(direction)
     gap = rng.uniform(-0.005, spread)
-    if rng.random() < 0.5:
+    kind = int(rng.integers(4))
+    if kind == 0:
         radius = rng.uniform(0.01, 0.1)
         return Shape("sphere", (radius,), anchor + direction * (radius + gap))
-    size = rng.uniform(0.02, 0.2, 3)
-    return Shape("box", tuple(size), anchor + direction * (0.5 * float(np.min(size)) + gap),
-                 rng.normal(size=4))
+    if kind == 1:
+        size = rng.uniform(0.02, 0.2, 3)
+        return Shape("box", tuple(size), anchor + direction * (0.5 * float(np.min(size)) + gap),
+                     rng.normal(size=4))
+    if kind == 2:
+        radius, length = rng.uniform(0.01, 0.08), rng.uniform(0.02, 0.3)
+        return Shape("cylinder", (radius, length), anchor + direction * (radius + gap),
+                     rng.normal(size=4))
+    # a small point set (a depth-camera blob) or a single point, nearest point at ~gap
+    n = int(rng.choice([1, 4, 12]))
+    pts = rng.normal(scale=rng.uniform(0.005, 0.03), size=(n, 3)) if n > 1 else np.zeros((1, 3))
+    pts -= pts[np.argmin(pts @ direction)]  # the point nearest the arm sits at the anchor
+    return Shape("points", (), anchor + direction * max(gap, 0.0005), points=pts)
 
 
 def _anchor(robot: Robot, q: np.ndarray, i: int, points: list[np.ndarray],
@@ -188,43 +206,121 @@ def _excess(fast: np.ndarray, mesh: np.ndarray) -> ModelExcess:
     e = fast[apart] - mesh[apart]
     touching = fast[~apart]
     return ModelExcess(float(e.max()), float(np.percentile(e, 99)), float(np.median(e)),
-                       float(touching.max()) if len(touching) else -np.inf)
+                       float(touching.max()) if len(touching) else -np.inf,
+                       float(np.median(-e)), float(np.percentile(-e, 99)), float((-e).max()))
 
 
-def measure_margin(samples: int = 10_000, seed: int = 7, spread: float = 0.15) -> MarginReport:
+def sphere_models() -> dict[str, SphereModel]:
+    """The sphere models compared, all without :data:`FAST_MODEL_MARGIN`: the URDF's spheres
+    as they are, the old model (grown to contain the meshes) and the fitted set (shipped)."""
+    model, geom = load_arm("panda_collision.urdf")
+    return {"panda_collision.urdf as is": SphereModel(model, geom, 0.0),
+            "old: urdf grown to contain": SphereModel(model, geom, 0.0,
+                                                      inflation=panda_inflation()),
+            "fitted (config/)": SphereModel.fitted(0.0)}
+
+
+def measure_margin(samples: int = 10_000, seed: int = 7, spread: float = 0.15,
+                   self_samples: int = 2_000) -> MarginReport:
     """Compare sphere models with the meshes on random configurations, each with one random
-    obstacle near a random surface point of the arm: the URDF's spheres as they are, and
-    after the containment growth (both without :data:`FAST_MODEL_MARGIN`)."""
+    obstacle near a random surface point of the arm, and (self-collision) on random
+    configurations, pair by pair over the link pairs the SRDF leaves enabled."""
     rng = np.random.default_rng(seed)
     mesh = Robot("mesh")
-    model, geom = load_arm("panda_collision.urdf")
-    urdf = SphereModel(model, geom, 0.0)
-    grown = SphereModel(model, geom, 0.0, inflation=panda_inflation())
+    models = sphere_models()
     points = [surface_points(o.geometry, 0.02) for o in mesh.mesh_geom.geometryObjects]
-    d_mesh, d_urdf, d_grown = (np.empty(samples) for _ in range(3))
+    d_mesh = np.empty(samples)
+    d_fast = {name: np.empty(samples) for name in models}
+    kinds = np.empty(samples, dtype=object)
     for n in range(samples):
         q = rng.uniform(mesh.limits.lower, mesh.limits.upper)
         anchor, outward = _anchor(mesh, q, int(rng.integers(len(points))), points, rng)
         obstacles = [_random_obstacle(rng, anchor, outward, spread)]
+        kinds[n] = obstacles[0].kind
         d_mesh[n] = mesh.clearance(q, obstacles).distance
-        d_urdf[n] = urdf.distances(q[None], obstacles)[0]
-        d_grown[n] = grown.distances(q[None], obstacles)[0]
-    return MarginReport(samples, int(np.sum(d_mesh <= 0.0)), _excess(d_urdf, d_mesh),
-                        _excess(d_grown, d_mesh))
+        for name, m in models.items():
+            d_fast[name][n] = m.distances(q[None], obstacles)[0]
+    by_kind = {k: {name: _excess(d[kinds == k], d_mesh[kinds == k]) for name, d in d_fast.items()}
+               for k in ("sphere", "box", "cylinder", "points")}
+    pairs, self_models = _self_excess(mesh, models, rng, self_samples)
+    return MarginReport(samples, int(np.sum(d_mesh <= 0.0)),
+                        {name: _excess(d, d_mesh) for name, d in d_fast.items()}, by_kind,
+                        pairs, self_models)
+
+
+def _self_excess(mesh: Robot, models: dict[str, SphereModel], rng: np.random.Generator,
+                 samples: int) -> tuple[int, dict[str, ModelExcess]]:
+    """Per joint pair (spheres are fixed to joints, and one sphere may cover two meshes of
+    one joint, e.g. link 7 and the hand): the sphere model's distance between the two
+    joints' spheres against coal's least distance over the SRDF-enabled mesh pairs between
+    them, on random configurations."""
+    geom = mesh.mesh_geom
+    joint = [o.parentJoint for o in geom.geometryObjects]
+    pairs = sorted({tuple(sorted((joint[p.first], joint[p.second])))
+                    for p in geom.collisionPairs if joint[p.first] != joint[p.second]})
+    req = coal.DistanceRequest()
+    req.enable_signed_distance = True
+    Q = rng.uniform(mesh.limits.lower, mesh.limits.upper, (samples, 7))
+    d_mesh = []
+    for q in Q:
+        pin.updateGeometryPlacements(mesh.model, mesh.data, geom, mesh.mesh_data, q)
+        best = dict.fromkeys(pairs, np.inf)
+        for p in geom.collisionPairs:
+            jp = tuple(sorted((joint[p.first], joint[p.second])))
+            if jp not in best:
+                continue
+            ma, mb = mesh.mesh_data.oMg[p.first], mesh.mesh_data.oMg[p.second]
+            d = coal.distance(geom.geometryObjects[p.first].geometry,
+                              coal.Transform3s(ma.rotation, ma.translation),
+                              geom.geometryObjects[p.second].geometry,
+                              coal.Transform3s(mb.rotation, mb.translation), req,
+                              coal.DistanceResult())
+            best[jp] = min(best[jp], d)
+        d_mesh.append([best[jp] for jp in pairs])
+    d_mesh = np.array(d_mesh).ravel()
+    out = {}
+    for name, m in models.items():
+        C = m.world_centers(Q)  # (N, S, 3)
+        cols = []
+        for ja, jb in pairs:
+            ia, ib = np.flatnonzero(m.joints == ja), np.flatnonzero(m.joints == jb)
+            d = (np.linalg.norm(C[:, ia, None] - C[:, None, ib], axis=-1)
+                 - m.radii[ia][:, None] - m.radii[ib][None])
+            cols.append(d.min(axis=(1, 2)))
+        out[name] = _excess(np.stack(cols, axis=1).ravel(), d_mesh)
+    return len(d_mesh), out
+
+
+def _print_excess(name: str, e: ModelExcess) -> None:
+    print(f"  {name:<28} {e.bulge_median * 1e3:>7.1f} {e.bulge_p99 * 1e3:>7.1f} "
+          f"{e.bulge_max * 1e3:>7.1f} {e.excess_max * 1e3:>+9.1f} "
+          f"{e.max_when_touching * 1e3:>+9.1f}")
 
 
 def _print_margin(r: MarginReport) -> bool:
-    print(f"{r.samples} random configurations, one obstacle each; the meshes touch it in "
-          f"{r.touching}")
-    print(f"{'sphere model':<28} {'max':>8} {'p99':>8} {'median':>8} {'touching':>9} "
-          "(fast − mesh, mm)")
-    for name, e in (("panda_collision.urdf as is", r.urdf), ("grown to contain meshes", r.grown)):
-        print(f"{name:<28} {e.excess_max * 1e3:>+8.1f} {e.excess_p99 * 1e3:>+8.1f} "
-              f"{e.excess_median * 1e3:>+8.1f} {e.max_when_touching * 1e3:>+9.1f}")
-    ok = FAST_MODEL_MARGIN >= r.grown.required
-    print(f"inflation still required after growth: {r.grown.required * 1e3:.1f} mm; "
-          f"FAST_MODEL_MARGIN = {FAST_MODEL_MARGIN * 1e3:.1f} mm -> "
-          f"{'conservative on every sample' if ok else 'NOT conservative'}")
+    print(f"{r.samples} random configurations, one obstacle each (sphere, box, cylinder, point "
+          f"set); the meshes touch it in {r.touching}")
+    print("  excess = mesh − fast distance where the meshes are apart (how far the spheres")
+    print("  reach beyond the meshes); conservative ⇔ max(fast − mesh) ≤ 0 and fast ≤ 0 where")
+    print("  the meshes touch. mm:")
+    print(f"  {'sphere model':<28} {'median':>7} {'p99':>7} {'max':>7} {'max f−m':>9} "
+          f"{'touching':>9}")
+    for name, e in r.models.items():
+        _print_excess(name, e)
+    for kind, per in r.by_kind.items():
+        print(f" {kind} obstacles only:")
+        for name, e in per.items():
+            _print_excess(name, e)
+    print(f" self-collision, {r.self_pairs} (configuration, joint pair) samples, sphere pair − "
+          "mesh pair distance:")
+    for name, e in r.self_models.items():
+        _print_excess(name, e)
+    fitted = r.models["fitted (config/)"]
+    ok = fitted.required <= 0.0 and r.self_models["fitted (config/)"].required <= 0.0
+    print(f"fitted set: fast − mesh ≤ {fitted.excess_max * 1e3:.1f} mm where apart, fast ≤ "
+          f"{fitted.max_when_touching * 1e3:+.1f} mm where the meshes touch -> "
+          f"{'fast free ⇒ meshes free on every sample' if ok else 'NOT conservative'} "
+          f"(FAST_MODEL_MARGIN {FAST_MODEL_MARGIN * 1e3:.1f} mm on top)")
     return ok
 
 
@@ -235,11 +331,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--margin", type=int, default=0, metavar="N",
                         help="instead: measure the fast-model margin on N random samples")
+    parser.add_argument("--self-samples", type=int, default=2000, metavar="N",
+                        help="with --margin: random configurations for the self-collision check")
     args = parser.parse_args(argv)
     if args.repeats < 1 or args.margin < 0:
         parser.error("--repeats must be ≥ 1 and --margin ≥ 0")
     if args.margin:
-        return 0 if _print_margin(measure_margin(args.margin, seed=args.seed or 7)) else 1
+        return 0 if _print_margin(measure_margin(args.margin, seed=args.seed or 7,
+                                                 self_samples=args.self_samples)) else 1
     rows = measure(args.repeats, args.seed)
     width = max(len(r[0]) for r in rows)
     print(f"{'query':<{width}}  {'median µs':>10}  note")

@@ -11,7 +11,6 @@ from damon_ros.core.limits import joint_limits
 from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.learning.bundle import DamonModel
-from damon_ros.planning import sampling
 from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
 from damon_ros.simulation.closed_loop import pose_goal
 
@@ -39,15 +38,15 @@ def planner(robots):
 
 
 @pytest.fixture()
-def calls(monkeypatch):
+def calls(planner, monkeypatch):
     """Every sampling search the planner starts: (budget, seed)."""
-    seen, real = [], sampling.sampling_route
+    seen, real = [], planner._sampling_route
 
-    def spy(*args, **kwargs):
-        seen.append((args[8], kwargs.get("seed")))
-        return real(*args, **kwargs)
+    def spy(query, budget, seed):
+        seen.append((budget, seed))
+        return real(query, budget, seed)
 
-    monkeypatch.setattr(sampling, "sampling_route", spy)
+    monkeypatch.setattr(planner, "_sampling_route", spy)
     return seen
 
 
@@ -71,11 +70,11 @@ def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, 
 def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
     budgets = []
 
-    def nothing(*args, **kwargs):
-        budgets.append((args[8], kwargs.get("seed")))
+    def nothing(query, budget, seed):
+        budgets.append((budget, seed))
         return None
 
-    monkeypatch.setattr(sampling, "sampling_route", nothing)
+    monkeypatch.setattr(planner, "_sampling_route", nothing)
     reasons = [planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0)).reason
                for _ in range(5)]
     assert budgets == [(2.0, 0), (4.0, 1), (8.0, 2), (16.0, 3), (16.0, 4)]
@@ -87,12 +86,33 @@ def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
     # a "route" straight through the box: what the checker must refuse
     goal_q = planner.resolve_goal(pose_goal(SCENE), SCENE.start, SCENE.obstacles_at(0.0))[0]
 
-    def through(algorithm, robot, limits, q_start, q_goal, *args, **kwargs):
-        return np.array([q_start, 0.5 * (q_start + q_goal), q_goal])
+    def through(query, budget, seed):
+        return np.array([query.q_start, 0.5 * (query.q_start + query.q_goal), query.q_goal])
 
-    monkeypatch.setattr(sampling, "sampling_route", through)
+    monkeypatch.setattr(planner, "_sampling_route", through)
     fast = planner.robot
     line = np.linspace(SCENE.start, goal_q, 50)
     assert fast.distances(line, SCENE.obstacles_at(0.0)).min() <= planner.config.margin
     result = planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0))
     assert not result.success and "failed certification" in result.reason
+
+
+def test_compiled_rrt_connect_routes_through_a_shelf_slot_under_the_fast_model(robots):
+    """The compiled search alone, on a problem the graph was never built for: every segment
+    it returns keeps the margin on the fast model at the checker's resolution."""
+    from damon_ros.core.shapes import Shape
+    from damon_ros.planning.rrt_connect import rrt_connect
+
+    fast = robots[0]
+    wall = [Shape("box", (0.05, 1.2, 1.2), np.array([0.45, 0.0, 0.6]))]
+    q_start = np.array([-1.2, 0.2, 0.0, -1.8, 0.0, 2.0, 0.8])
+    q_goal = np.array([1.2, 0.2, 0.0, -1.8, 0.0, 2.0, 0.8])
+    assert fast.state_free(q_start, wall, 0.01) and fast.state_free(q_goal, wall, 0.01)
+    assert not fast.segment_free(q_start, q_goal, wall, 0.01)
+    path = rrt_connect(fast.spheres, q_start, q_goal, fast.limits.lower, fast.limits.upper,
+                       wall, 0.01, (0.01, 0.01), 0.02, budget_s=20.0, seed=3)
+    assert path is not None
+    np.testing.assert_allclose(path[0], q_start)
+    np.testing.assert_allclose(path[-1], q_goal)
+    assert all(fast.segment_free(a, b, wall, 0.01, resolution=0.02)
+               for a, b in zip(path, path[1:], strict=False))

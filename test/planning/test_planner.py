@@ -116,10 +116,10 @@ def test_no_route_means_no_path_and_a_reason(planner, monkeypatch):
     q_goal, _ = planner.resolve_goal(goal, scenario.start, scenario.obstacles_at(0.0))
     original = planner.segment_free
 
-    def refuse_near_goal(q0, q1, obstacles, margin):
+    def refuse_near_goal(q0, q1, obstacles, margin, exact=True):
         if min(np.linalg.norm(q0 - q_goal), np.linalg.norm(q1 - q_goal)) < 1e-9:
             return False
-        return original(q0, q1, obstacles, margin)
+        return original(q0, q1, obstacles, margin, exact)
 
     monkeypatch.setattr(planner, "segment_free", refuse_near_goal)
     result = planner.plan(scenario.start, goal, scenario.obstacles_at(0.0))
