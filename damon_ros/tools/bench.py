@@ -51,12 +51,16 @@ moving obstacles, and closes grasp goals the data set places 8-30 mm from an obj
 
 
 def make_runtime(name: str, model, fast, seed: int, solve_time: float,
-                 margin: float | None = None):
+                 margin: float | None = None, fallback_s: float | None = None):
+    from dataclasses import replace
+
     from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
     from damon_ros.planning.ompl_baseline import OmplPlanner
     from damon_ros.planning.reactive import ReactivePlanner
 
     config = PlannerConfig() if margin is None else PlannerConfig(margin=margin)
+    if fallback_s is not None:
+        config = replace(config, fallback_budget_s=fallback_s)
     if name in ("damon", "damon-noreplan"):
         planner = GraphPlanner(model.graph, fast, fast.limits, config)
         settings = {"graph_vertices": model.graph.n_vertices, "margin_m": planner.config.margin,
@@ -124,8 +128,10 @@ def run_mbm(path, planners, model, out, args) -> list[dict]:
             if name == "damon-noreplan":
                 continue  # identical to damon when nothing moves
             margin = MBM_MARGIN if args.margin is None else args.margin
+            # plan once: damon's sampling fallback gets OMPL's budget (the node's 0.1 s is a
+            # first try that a holding arm escalates; here there is no second call)
             runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time,
-                                             margin)
+                                             margin, fallback_s=args.solve_time)
             t0 = time.perf_counter()
             result = runtime.planner.plan(scenario.start, scenario.goal.joints, obstacles)
             elapsed = time.perf_counter() - t0

@@ -164,6 +164,16 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["## MotionBenchMaker (static, many obstacles, joint goals; plan once)", "",
                   f"`{args.mbm_command}`", "", *mbm_table(load(args.mbm)), "",
                   f"Published reference: {PUBLISHED_MBM}", ""]
-    out.write_text("\n".join(lines) + "\n")
+    kept = _marked_sections(out.read_text()) if out.exists() else []
+    out.write_text("\n".join(lines + kept) + "\n")
     print(f"wrote {out}")
     return 0
+
+
+def _marked_sections(text: str) -> list[str]:
+    """Sections other commands keep in the page between ``<!-- name -->`` and
+    ``<!-- /name -->`` (the ablation's table): carried over, not lost to a new report."""
+    import re
+
+    return [m.group(0) + "\n" for m in re.finditer(r"<!-- (\w+) -->.*?<!-- /\1 -->", text,
+                                                   flags=re.S)]

@@ -15,7 +15,7 @@ from damon_ros.planning.reactive import ReactivePlanner, swept
 from damon_ros.simulation.closed_loop import pose_goal
 
 SCENARIOS = load_public_scenarios()
-TEST_CONFIG = PlannerConfig(time_budget_s=5.0)
+TEST_CONFIG = PlannerConfig(time_budget_s=5.0, handover_s=5.0)
 """The node's 0.25 s wall-clock budget is a latency target of the node (benchmarks and the
 soak measure it); on a loaded 2-core machine it ran out on A-002 and D-002 ("no certified
 route ... within the time budget"; ~0.5 s of search on a quiet one). 5 s leaves the search

@@ -67,7 +67,7 @@ def crossing_scenario(tmp_path):
     robot = Robot("fast")
     # a budget that does not depend on this machine's load (see test_planner.TEST_CONFIG)
     planner = GraphPlanner(DamonModel.load().graph, robot, robot.limits,
-                           PlannerConfig(time_budget_s=60.0))
+                           PlannerConfig(time_budget_s=60.0, handover_s=60.0))
     pose = data["goal"]["pose"]
     plan = planner.plan(np.array(data["start"]["joints"]),
                         PoseGoal(np.array(pose["position"]), np.array(pose["orientation"])), [])
