@@ -227,8 +227,13 @@ class GraphPlanner:
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
-        if self.config.fallback_budget_s > 0.0:
-            import ompl.geometric  # noqa: F401  (a first fallback should not pay the import)
+        if self.config.fallback_budget_s > 0.0:  # a first fallback should not pay for these
+            if self.robot.collision == "fast":
+                from damon_ros.planning.rrt_connect import warm_up
+
+                warm_up(self.robot.spheres)
+            else:
+                import ompl.geometric  # noqa: F401
         if self.graph is not None:
             goal_q = self.graph.q[self._safe_ids[len(self._safe_ids) // 2]]
             self.plan(q, goal_q, [probe])

@@ -151,3 +151,15 @@ def rrt_connect(spheres, q_start: np.ndarray, q_goal: np.ndarray, lower: np.ndar
             path = _branch(nodes[0], parents[0], i)[::-1] + _branch(nodes[1], parents[1], j)[1:]
             return np.array(path)
     return None
+
+
+def warm_up(spheres) -> None:
+    """Compile (or load from the disk cache) every kernel of the search, so that the first
+    fallback of a running node does not spend seconds compiling while the arm holds."""
+    probe = (Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0])),)
+    q = np.zeros(7)
+    nodes, parents = np.zeros((2, 2, 7)), np.zeros((2, 2), np.int64)
+    _seed(0)
+    _search(nodes, parents, np.ones(2, np.int64), q - 1.0, q + 1.0, 1.0,
+            np.zeros(3), 0.02, 0, np.zeros(1, np.int64), tuple(spheres.kernel_args),
+            sphere_kernels.pack_obstacles(probe))

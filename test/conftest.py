@@ -1,0 +1,19 @@
+"""Suite-wide set-up: the compiled kernels exist on disk before any node process starts.
+
+numba caches a kernel beside its module the first time it is compiled. In a fresh clone
+that first time was inside whichever test came first — for the planner's RRT-Connect, a
+planner node's start-up (11 s of compiling on a quiet core, more on a busy one), within the
+bound that test gives the node to come up. Compiling once here makes every start-up load them.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    from damon_ros.core.robot import Robot
+    from damon_ros.planning.rrt_connect import warm_up
+
+    warm_up(Robot("fast").spheres)
