@@ -75,6 +75,7 @@ class PlannerConfig:
     # doubled on each further failure toward the same goal, up to 8x
     experience_routes: int = 32  # certified fallback routes kept for reuse
     handover_s: float = 0.03  # with a fallback, the graph's lazy search hands over after this
+    exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
     def graph_budget(self) -> float:
         """s the graph's lazy search may take: the whole time budget without a fallback;
@@ -84,7 +85,6 @@ class PlannerConfig:
         if self.fallback_budget_s > 0.0:
             return min(self.time_budget_s, self.handover_s)
         return self.time_budget_s
-    exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
 
 APPROACH_RAD = (0.1, 0.2, 0.4)
