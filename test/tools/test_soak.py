@@ -141,3 +141,14 @@ def test_report_has_a_cpu_table_per_node():
            "cpu_cores": {"planner": 0.12, "mock_panda": 0.31, "total": 0.43}, "load_avg": 3.2}
     cpu = report_tables([row])[-1]
     assert "CPU mock_panda" in cpu and "0.31" in cpu and "0.43" in cpu and "3.2" in cpu
+
+
+def test_a_goal_waits_for_a_planner_that_has_a_fresh_joint_state():
+    # the demo and the soak send their first goal only then (a goal before it is refused)
+    from damon_ros.tools.soak_monitor import planner_has_state
+
+    assert planner_has_state({"joint_state_age_s": "0.012"})
+    assert not planner_has_state({"joint_state_age_s": "inf"})  # none received yet
+    assert not planner_has_state({"joint_state_age_s": "0.9"})  # stale
+    assert not planner_has_state({})  # no status yet
+    assert not planner_has_state({"joint_state_age_s": "n/a"})  # unreadable
