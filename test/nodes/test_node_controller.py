@@ -62,9 +62,12 @@ class Arm:
     def q(self) -> np.ndarray:
         return np.array(self.states.last.position)
 
-    def settle(self, timeout_s: float = 3.0) -> bool:
+    def settle(self, timeout_s: float = 10.0) -> bool:
         """Still for the last 100 states (0.1 s): one slow state may be the turning point
-        of the overshoot when the arm brakes and comes back to the hold position."""
+        of the overshoot when the arm brakes and comes back to the hold position. The bound
+        is for a starved test client (CI: the controller logged the hold reached within
+        0.04 s, the client had not seen 100 still states within 3 s); an arm that never
+        stops fails it all the same."""
         def still() -> bool:
             recent = self.states.messages[-100:]
             return len(recent) == 100 and max(
