@@ -45,16 +45,6 @@ def dh_tcp(q: np.ndarray) -> np.ndarray:
     return T @ _craig(0.0, 0.1034, 0.0, 0.0)  # TCP between the fingertips
 
 
-@pytest.fixture(scope="module")
-def mesh() -> Robot:
-    return Robot("mesh")
-
-
-@pytest.fixture(scope="module")
-def fast() -> Robot:
-    return Robot("fast")
-
-
 def _random_free(robot: Robot, rng, n: int) -> list[np.ndarray]:
     out = []
     while len(out) < n:

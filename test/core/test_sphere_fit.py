@@ -23,16 +23,6 @@ from damon_ros.core.sphere_fit import _depth, _hulls
 from damon_ros.core.sphere_set import SphereSet
 
 
-@pytest.fixture(scope="module")
-def mesh() -> Robot:
-    return Robot("mesh")
-
-
-@pytest.fixture(scope="module")
-def fast() -> Robot:
-    return Robot("fast")
-
-
 def test_fitted_spheres_contain_every_mesh_point(mesh, fast):
     """Dense surface points (5 mm triangles, finer than the fit's 20 mm) of every mesh lie
     inside a sphere of the raw fitted set (before FAST_MODEL_MARGIN) on the same joint —
