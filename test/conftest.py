@@ -14,6 +14,8 @@ import pytest
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels():
     from damon_ros.core.robot import Robot
-    from damon_ros.planning.rrt_connect import warm_up
+    from damon_ros.planning import path_shortcutting, rrt_connect
 
-    warm_up(Robot("fast").spheres)
+    spheres = Robot("fast").spheres
+    rrt_connect.warm_up(spheres)
+    path_shortcutting.warm_up(spheres)

@@ -266,6 +266,7 @@ class SphereModel:
             np.array([model.jointPlacements[j].rotation for j in range(1, 8)]),
             np.array([model.jointPlacements[j].translation for j in range(1, 8)]),
             self.joints, self.centers, self.radii)
+        self._kernel_order = sphere_kernels.kernel_order(self.joints, self.centers)
 
     def _packed(self, obstacles: Sequence[Shape]) -> tuple:
         """The kernels' arrays of ``obstacles``, kept for the same (immutable) tuple: packing
@@ -278,6 +279,13 @@ class SphereModel:
         if cached is None or cached[0] is not obstacles:
             cached = self._pack_cache = (obstacles, sphere_kernels.pack_obstacles(obstacles))
         return cached[1]
+
+    def closest(self, q: np.ndarray, obstacles: Sequence[Shape]) -> tuple[float, int, int]:
+        """(distance, sphere index, obstacle index) of the nearest sphere-obstacle pair in
+        configuration q (indices into ``radii`` and ``obstacles``; -1 when none is finite)."""
+        d, i, k = sphere_kernels.closest_pair(np.ascontiguousarray(q, dtype=float),
+                                              *self.kernel_args, *self._packed(obstacles))
+        return float(d), int(self._kernel_order[i]) if i >= 0 else -1, int(k)
 
     def distances(self, Q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
         """(N,) minimum signed distance of configurations (N, 7) to the obstacles."""

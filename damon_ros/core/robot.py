@@ -354,16 +354,16 @@ class Robot:
         return float(best)
 
     def _fast_clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> Clearance:
-        centers = self.spheres.world_centers(q[None])[0].T
-        sdfs = [Sdf(s) for s in obstacles]
-        per = np.stack([sdf(centers) for sdf in sdfs]) - self.spheres.radii
-        k, i = (int(v) for v in np.unravel_index(int(np.argmin(per)), per.shape))
-        center, radius = centers[:, i], self.spheres.radii[i]
-        surface = sdfs[k].closest_point(center)
+        """The nearest pair from the kernels, witness points from that pair alone."""
+        distance, i, k = self.spheres.closest(q, obstacles)
+        if i < 0:  # no finite distance (NaN or infinite obstacles)
+            return Clearance(distance, np.zeros(3), np.zeros(3), "", -1)
+        center, radius = self.spheres.world_centers(q[None])[0, i], self.spheres.radii[i]
+        surface = Sdf(obstacles[k]).closest_point(center)
         away = center - surface
-        inside = per[k, i] + radius < 0.0
+        inside = distance + radius < 0.0
         u = (-away if inside else away) / max(float(np.linalg.norm(away)), 1e-12)
-        return Clearance(float(per[k, i]), center - u * radius, surface, self.spheres.links[i], k)
+        return Clearance(distance, center - u * radius, surface, self.spheres.links[i], k)
 
     def distances(self, Q, obstacles: Sequence[Shape]) -> np.ndarray:
         """Minimum signed distance to the obstacles for each configuration of (N, 7)."""

@@ -74,7 +74,7 @@ class PlannerConfig:
     fallback_budget_s: float = 0.1  # RRT-Connect when the graph has no route (0 = none);
     # doubled on each further failure toward the same goal, up to 8x
     experience_routes: int = 32  # certified fallback routes kept for reuse
-    handover_s: float = 0.03  # with a fallback, the graph's lazy search hands over after this
+    handover_s: float = 0.005  # with a fallback, the graph's lazy search hands over after this
     exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
 
     def graph_budget(self) -> float:
@@ -233,9 +233,10 @@ class GraphPlanner:
         self.robot.distances(q[None], [probe])
         if self.config.fallback_budget_s > 0.0:  # a first fallback should not pay for these
             if self.robot.collision == "fast":
-                from damon_ros.planning.rrt_connect import warm_up
+                from damon_ros.planning import path_shortcutting, rrt_connect
 
-                warm_up(self.robot.spheres)
+                rrt_connect.warm_up(self.robot.spheres)
+                path_shortcutting.warm_up(self.robot.spheres)
             else:
                 import ompl.geometric  # noqa: F401
         if self.graph is not None:
@@ -410,7 +411,8 @@ class GraphPlanner:
         segment passes, at most ``tries`` segments checked. None: no such state (the route
         is then searched into the goal itself)."""
         rng = rng or np.random.default_rng(0)
-        pool = [self.inside_limits(q_goal + rng.uniform(-a, a, (16, 7))) for a in APPROACH_RAD]
+        pool = [self._retreat(q_goal, scene.ahead)]
+        pool += [self.inside_limits(q_goal + rng.uniform(-a, a, (16, 7))) for a in APPROACH_RAD]
         if self._tree is not None:
             _, idx = self._tree.query(q_goal, k=min(16, len(self._safe_ids)))
             pool.append(self.graph.q[self._safe_ids[np.atleast_1d(idx)]])
@@ -426,6 +428,29 @@ class GraphPlanner:
                     self.robot.segment_self_collision_free(pool[i], q_goal):
                 return pool[i]
         return None
+
+    def _retreat(self, q_goal: np.ndarray, obstacles: Sequence[Shape], step: float = 0.02,
+                 steps: int = 25) -> np.ndarray:
+        """States on a climb of the fast model's clearance from ``q_goal`` (finite-difference
+        gradient, ``step`` rad a move): the way out of a grasp pocket. Random perturbations
+        of a goal inside a shelf mostly push the hand into the shelf; the gradient points
+        away from what is close. Returns the states that reach the full margin (the first
+        first), possibly none."""
+        if not obstacles:
+            return np.empty((0, 7))
+        q, out, eye = q_goal.copy(), [], np.eye(7) * 1e-4
+        for _ in range(steps):
+            d = self.robot.distances(np.vstack([q, q + eye, q - eye]), obstacles)
+            if d[0] > self.config.margin:
+                out.append(q.copy())
+                if len(out) == 3:
+                    break
+            grad = d[1:8] - d[8:]
+            norm = float(np.linalg.norm(grad))
+            if not np.isfinite(norm) or norm <= 0.0:
+                break
+            q = self.inside_limits(q + step * grad / norm)
+        return np.array(out).reshape(-1, 7)
 
     def _check_start(self, q: np.ndarray) -> str:
         if q.shape != (7,) or not np.all(np.isfinite(q)):
@@ -504,15 +529,14 @@ class GraphPlanner:
             return None, "", ""
         attempt = self._fallback_failures
         budget = self._fallback_budget(attempt)
-        path = self._sampling_route(query, budget, seed=attempt)
-        if path is not None and self.config.shortcut:
-            path = self._shortcut(path, query)
-        if path is not None and self._certified(path, query):
+        raw = self._sampling_route(query, budget, seed=attempt)
+        path = None if raw is None else self._shortened(raw, query)
+        if path is not None:
             self._fallback_failures = 0
             self.experience = [*self.experience, path][-self.config.experience_routes:]
             return path, "rrtconnect", ""
         self._fallback_failures += 1
-        found = "a route that failed certification" if path is not None else "no route"
+        found = "a route that failed certification" if raw is not None else "no route"
         return None, "", (f"; RRT-Connect fallback found {found} in {budget:.2f} s (attempt "
                           f"{attempt + 1}; the next one gets "
                           f"{self._fallback_budget(attempt + 1):.2f} s "
@@ -541,6 +565,24 @@ class GraphPlanner:
                            self.limits.lower, self.limits.upper, obstacles, margin,
                            (query.start_margin, goal_margin), self.config.resolution,
                            budget, seed=seed)
+
+    def _shortened(self, path: np.ndarray, query: _Query) -> np.ndarray | None:
+        """A sampled route shortened and certified, or None when it fails certification.
+        On the fast model the compiled shortcut goes first (`path_shortcutting`: the same
+        questions as `_shortcut` without self-collision, ~10x cheaper); where its result
+        is refused (self-collision, a goal only the meshes accept), `_shortcut` decides."""
+        if not self.config.shortcut:
+            return path if self._certified(path, query) else None
+        if self.robot.collision == "fast":
+            from damon_ros.planning.path_shortcutting import shortcut
+
+            short = shortcut(self.robot.spheres, path, query.scene.ahead, query.start_margin,
+                             self.config.margin, self.config.resolution, self.limits.lower,
+                             self.limits.upper)
+            if self._certified(short, query):
+                return short
+        short = self._shortcut(path, query)
+        return short if self._certified(short, query) else None
 
     def _fallback_budget(self, attempt: int) -> float:
         """The sampling budget of the ``attempt``-th try (from 0) toward one goal."""

@@ -25,6 +25,8 @@ from numba import njit
 from damon_ros.core import sphere_kernels
 from damon_ros.core.shapes import Shape
 
+ADVANCED, REACHED, TRAPPED = 0, 1, 2
+
 SLICE = 256
 """Iterations per compiled call between two looks at the clock (~1-5 ms)."""
 
@@ -34,10 +36,40 @@ def _motion_free(a, b, margin, resolution, robot, obstacles):
     steps = 0
     for i in range(a.shape[0]):
         steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
-    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr = robot
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
     kind, pos, rot, params = obstacles
     return sphere_kernels.segment_clear(a, b, max(steps, 1), margin, jr, jp, sj, sc, sr, gj,
-                                        gs, ge, gc, gr, kind, pos, rot, params)
+                                        gs, ge, gc, gr, jb, kind, pos, rot, params)
+
+
+@njit(cache=True)
+def _free_prefix(a, b, margin, resolution, robot, obstacles, first):
+    """How far (0-1) from ``a`` toward ``b`` the states at ``resolution`` keep ``margin``,
+    walked in order from ``a`` (a tree node). Groups before ``first`` are not checked: the
+    base's, when they keep every margin of the search (`_first_group`). A tree grows into
+    a narrow pocket only this way: from a grasp goal inside a shelf, almost every full step
+    toward a random sample hits the shelf, and all-or-nothing extension left that tree at
+    2-50 nodes while the other grew to thousands."""
+    steps = 0
+    for i in range(a.shape[0]):
+        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
+    if steps == 0:
+        return 1.0
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
+    kind, pos, rot, params = obstacles
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    q = np.empty(a.shape[0])
+    where = np.empty(2, np.int64)
+    for k in range(1, steps + 1):
+        t = k / steps
+        for i in range(a.shape[0]):
+            q[i] = a[i] + (b[i] - a[i]) * t
+        if sphere_kernels._distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc,
+                                          gr, jb, kind, pos, rot, params, fr, fp,
+                                          where, margin, first) <= margin:
+            return (k - 1) / steps
+    return 1.0
 
 
 @njit(cache=True)
@@ -68,25 +100,33 @@ def _margin_of(tree, parent_index, margins):
 
 
 @njit(cache=True)
-def _extend(nodes, parents, counts, tree, target, step, margins, resolution, robot, obstacles):
-    """One step of tree ``tree`` toward ``target``: (new index or -1, reached target)."""
+def _extend(nodes, parents, counts, tree, target, step, margins, resolution, robot, obstacles,
+            first):
+    """One step of tree ``tree`` toward ``target``: (new index or -1, status): a full step
+    (ADVANCED), the target itself (REACHED), the free part of a blocked step (TRAPPED), or
+    nothing (-1, TRAPPED)."""
     near = _nearest(nodes[tree], counts[tree], target)
     new, reached = _steer(nodes[tree, near], target, step)
     margin = _margin_of(tree, near, margins)
-    if not _motion_free(nodes[tree, near], new, margin, resolution, robot, obstacles):
-        return -1, False
+    t = _free_prefix(nodes[tree, near], new, margin, resolution, robot, obstacles, first)
+    if t <= 0.0:
+        return -1, TRAPPED
+    status = REACHED if reached else ADVANCED
+    if t < 1.0:  # blocked on the way: keep the free part
+        new = nodes[tree, near] + t * (new - nodes[tree, near])
+        status = TRAPPED
     k = counts[tree]
     if k >= nodes.shape[1]:
-        return -1, False
+        return -1, TRAPPED
     nodes[tree, k] = new
     parents[tree, k] = near
     counts[tree] = k + 1
-    return k, reached
+    return k, status
 
 
 @njit(cache=True)
 def _search(nodes, parents, counts, lower, upper, step, margins, resolution, iterations, state,
-            robot, obstacles):
+            robot, obstacles, first):
     """``iterations`` rounds of RRT-Connect; returns (start-tree node, goal-tree node) of
     the connection, or (-1, -1). ``state[0]`` is the tree that extends next."""
     for _ in range(iterations):
@@ -95,23 +135,32 @@ def _search(nodes, parents, counts, lower, upper, step, margins, resolution, ite
         state[0] = b
         target = lower + np.random.random(lower.shape[0]) * (upper - lower)
         new, _ = _extend(nodes, parents, counts, a, target, step, margins, resolution, robot,
-                         obstacles)
+                         obstacles, first)
         if new < 0:
             continue
         goal = nodes[a, new].copy()
         while True:  # connect: tree b steps toward the new node until it arrives or is blocked
-            k, reached = _extend(nodes, parents, counts, b, goal, step, margins, resolution,
-                                 robot, obstacles)
-            if k < 0:
-                break
-            if reached:
+            k, status = _extend(nodes, parents, counts, b, goal, step, margins, resolution,
+                                robot, obstacles, first)
+            if status == REACHED:
                 return (new, k) if a == 0 else (k, new)
+            if status != ADVANCED:
+                break
     return -1, -1
 
 
 @njit(cache=True)
 def _seed(seed):
     np.random.seed(seed)
+
+
+def _first_group(robot: tuple, packed: tuple, margin: float) -> int:
+    """The first sphere group the search must check: past the base's, when the base (which
+    never moves) keeps ``margin`` from every obstacle; otherwise all of them."""
+    _, _, sj, sc, sr, gj = robot[:6]
+    if sphere_kernels.fixed_clearance(sj, sc, sr, *packed) > margin:
+        return int(sphere_kernels.fixed_groups(gj))
+    return 0
 
 
 def _branch(nodes: np.ndarray, parents: np.ndarray, index: int) -> list[np.ndarray]:
@@ -143,9 +192,10 @@ def rrt_connect(spheres, q_start: np.ndarray, q_goal: np.ndarray, lower: np.ndar
         return np.array([q_start, q_goal])
     _seed(int(seed))
     state = np.zeros(1, np.int64)
+    first = _first_group(robot, packed, float(margins.max()))
     while time.perf_counter() < deadline and counts.max() < max_nodes:
         i, j = _search(nodes, parents, counts, lower, upper, step, margins, resolution, SLICE,
-                       state, robot, packed)
+                       state, robot, packed, first)
         if i >= 0:
             # the connection point is in both trees: once
             path = _branch(nodes[0], parents[0], i)[::-1] + _branch(nodes[1], parents[1], j)[1:]
@@ -162,4 +212,5 @@ def warm_up(spheres) -> None:
     _seed(0)
     _search(nodes, parents, np.ones(2, np.int64), q - 1.0, q + 1.0, 1.0,
             np.zeros(3), 0.02, 0, np.zeros(1, np.int64), tuple(spheres.kernel_args),
-            sphere_kernels.pack_obstacles(probe))
+            sphere_kernels.pack_obstacles(probe), 0)
+    _first_group(tuple(spheres.kernel_args), sphere_kernels.pack_obstacles(probe), 0.0)
