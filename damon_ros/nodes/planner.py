@@ -88,7 +88,7 @@ PARAMETERS = (
     Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
     Param("fallback_budget_s", 0.1, "RRT-Connect (same checker) where the graph has no route; "
           "doubled per further failure toward a goal, up to 8x (0 = off)", 0.0, 10.0),
-    Param("handover_s", 0.03, "with a fallback, the graph's lazy search hands over to it "
+    Param("handover_s", 0.005, "with a fallback, the graph's lazy search hands over to it "
           "after this long (s; at most time_budget_s)", 0.001, 10.0),
     Param("realtime_priority", 15, "SCHED_FIFO priority of the node's threads (0 = normal "
           "scheduling): above the camera and tracker, below the 1 kHz control loops", 0, 99),
