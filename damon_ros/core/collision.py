@@ -34,8 +34,10 @@ import numpy as np
 import pinocchio as pin
 
 from damon_ros.core import sphere_kernels
+from damon_ros.core.hull import closest_point as hull_closest_point
+from damon_ros.core.hull import hull_faces, hull_signed_many, solid_points
 from damon_ros.core.kinematics import FINGER_OPENING, Chain, description_dir, load_arm
-from damon_ros.core.shapes import Shape, points_box
+from damon_ros.core.shapes import Shape
 
 SPHERE_SPACING = 0.04
 """Largest gap (m) between the spheres that cover one cylinder of the URDF's sphere model;
@@ -98,22 +100,6 @@ def local_vertices(g: coal.CollisionGeometry) -> np.ndarray:
 
 
 # ---- obstacles as coal geometry ---------------------------------------------------------
-def _solid_points(points: np.ndarray, eps: float = 1e-7) -> np.ndarray:
-    """A point set with a 3-D hull: flat or collinear sets get ±eps copies across their
-    missing directions, so coal can build a hull that is the set within eps."""
-    if len(points) >= 4:
-        _, s, vt = np.linalg.svd(points - points.mean(axis=0))
-        if s[2] > 1e-9:
-            return points
-    else:
-        _, s, vt = np.linalg.svd(np.vstack([points - points.mean(axis=0), np.zeros((3, 3))]))
-    extra = [points]
-    for k in range(3):
-        if s[k] <= 1e-9:
-            extra += [points + eps * vt[k], points - eps * vt[k]]
-    return np.vstack(extra)
-
-
 def obstacle_geometry(shape: Shape) -> tuple[coal.CollisionGeometry, coal.Transform3s]:
     """coal geometry and placement of an obstacle; a point set is its convex hull."""
     placement = coal.Transform3s(shape.rotation(), shape.position)
@@ -124,7 +110,7 @@ def obstacle_geometry(shape: Shape) -> tuple[coal.CollisionGeometry, coal.Transf
     if shape.kind == "cylinder":
         return coal.Cylinder(shape.size[0], shape.size[1]), placement
     vec = coal.StdVec_Vec3s()
-    for p in _solid_points(shape.points):
+    for p in solid_points(shape.points):
         vec.append(p)
     return coal.Convex.convexHull(vec, False, "Qt"), placement
 
@@ -132,20 +118,21 @@ def obstacle_geometry(shape: Shape) -> tuple[coal.CollisionGeometry, coal.Transf
 # ---- vectorised signed distance of points to one obstacle -------------------------------
 class Sdf:
     """Signed distance from a batch of points, laid out (3, M) as x, y, z rows, to one
-    obstacle (negative inside). As in :mod:`damon_ros.core.sphere_kernels`, a point set counts as
-    its principal-axes box or its bounding sphere about its mean, whichever is smaller
-    (:func:`~damon_ros.core.shapes.points_box`; both contain its hull, so distances to it
-    never exceed the true ones) and a single point exactly."""
+    obstacle (negative inside), as :mod:`damon_ros.core.sphere_kernels` computes it: a
+    point set is the convex hull of its points (:mod:`damon_ros.core.hull`; its bounding
+    sphere where no hull can be built)."""
 
     def __init__(self, shape: Shape) -> None:
-        shape = points_box(shape) or shape  # as the kernels do: the smaller bound of a set
         rot = shape.rotation()
         self.kind, center = shape.kind, shape.position
+        self.faces = None
         if shape.kind == "points":
             world = shape.position + shape.points @ rot.T
             center = world.mean(axis=0)
             self.kind = "sphere"
             self.radius = float(np.max(np.linalg.norm(world - center, axis=1)))
+            faces = hull_faces(world)
+            self.faces = faces if len(faces) else None
         elif shape.kind == "box":
             self.half = 0.5 * np.array(shape.size)[:, None]
         elif shape.kind == "sphere":
@@ -156,6 +143,8 @@ class Sdf:
         self.offset = self.rt @ self.center
 
     def __call__(self, P: np.ndarray) -> np.ndarray:
+        if self.faces is not None:
+            return hull_signed_many(np.ascontiguousarray(P, dtype=float), self.faces)
         if self.kind == "sphere":
             d = P - self.center
             return np.sqrt(np.einsum("im,im->m", d, d)) - self.radius
@@ -171,6 +160,8 @@ class Sdf:
 
     def closest_point(self, p: np.ndarray) -> np.ndarray:
         """The obstacle's surface point nearest ``p`` (for witness points)."""
+        if self.faces is not None:
+            return hull_closest_point(p, self.faces)
         center = self.center[:, 0]
         if self.kind == "sphere":
             d = p - center
@@ -197,7 +188,7 @@ class Sdf:
 
 def signed_distance(points: np.ndarray, shape: Shape) -> np.ndarray:
     """Signed distance (negative inside) from points (..., 3) to an obstacle, with the fast
-    model's conventions (a point set as its bounding sphere); the numpy reference for
+    model's conventions (a point set as its convex hull); the reference for
     :mod:`damon_ros.core.sphere_kernels`."""
     points = np.asarray(points, dtype=float)
     if points.shape[-1] != 3:

@@ -375,8 +375,12 @@ class Robot:
         return self.spheres.distances(Q, obstacles)
 
     def in_collision(self, q, obstacles: Sequence[Shape], margin: float = 0.0) -> bool:
-        """True when the robot comes within ``margin`` of an obstacle (touching counts)."""
-        return bool(self.distances(self._check_q(q)[None], obstacles)[0] <= margin)
+        """True when the robot comes within ``margin`` of an obstacle (touching counts); on
+        the meshes the decision alone (`_mesh_keeps`), not a whole clearance."""
+        q = self._check_q(q)
+        if self.collision == "mesh":
+            return bool(obstacles) and not self._mesh_keeps(q, obstacles, margin)
+        return bool(self.distances(q[None], obstacles)[0] <= margin)
 
     # ---- self-collision ---------------------------------------------------------------
     def self_collision(self, q, checked: bool = True) -> bool:

@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(description=main.__doc__)
-    p.add_argument("--delta", type=float, nargs="+", default=[0.008])
+    p.add_argument("--delta", type=float, nargs="+", default=[0.007])
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
     s = None

@@ -6,9 +6,12 @@ overhead, so the forward kinematics of the sphere centres and the sphere↔shape
 distances are compiled with numba (cached on disk after the first call). The maths is the
 same as :func:`damon_ros.core.collision.signed_distance`; tests compare the two.
 
-Obstacles are packed as arrays: ``kind`` (0 sphere, 1 box, 2 cylinder, 3 bounding sphere of
-a point set), ``position`` (K, 3), ``rotation`` (K, 3, 3) and ``params`` (K, 3) — sphere
-radius; box half extents; cylinder radius and half length.
+Obstacles are packed as arrays: ``kind`` (0 sphere, 1 box, 2 cylinder, 3 hull of a point
+set), ``position`` (K, 3), ``rotation`` (K, 3, 3), ``params`` (K, 3) — sphere radius; box
+half extents; cylinder radius and half length; a hull's bounding-sphere radius and its
+first and end row in ``hull`` — and ``hull`` (F, 13), the face rows of every point set
+(:mod:`damon_ros.core.hull`). A hull is its bounding sphere for the bound tests and exact
+for a sphere's own distance.
 """
 
 from __future__ import annotations
@@ -19,20 +22,22 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit
 
-from damon_ros.core.shapes import Shape, points_box
+from damon_ros.core.hull import FACE_WIDTH, hull_faces, hull_signed
+from damon_ros.core.shapes import Shape
 
-SPHERE, BOX, CYLINDER = 0, 1, 2
+SPHERE, BOX, CYLINDER, HULL = 0, 1, 2, 3
 
 
 def pack_obstacles(obstacles: Sequence[Shape]):
-    """Shapes → (kind, position, rotation, params) arrays for the kernels."""
+    """Shapes → (kind, position, rotation, params, hull) arrays for the kernels."""
     k = len(obstacles)
     kind = np.zeros(k, np.int64)
     pos = np.zeros((k, 3))
     rot = np.zeros((k, 3, 3))
     params = np.zeros((k, 3))
+    faces = [np.zeros((0, FACE_WIDTH))]
+    rows = 0
     for i, s in enumerate(obstacles):
-        s = points_box(s) or s  # a point set: its principal box when smaller than its sphere
         rot[i] = s.rotation()
         pos[i] = s.position
         if s.kind == "sphere":
@@ -41,18 +46,24 @@ def pack_obstacles(obstacles: Sequence[Shape]):
             kind[i], params[i] = BOX, 0.5 * np.asarray(s.size)
         elif s.kind == "cylinder":
             kind[i], params[i, :2] = CYLINDER, (s.size[0], 0.5 * s.size[1])
-        else:  # points: the bounding sphere of the set (conservative), a point exactly
+        else:  # points: the hull, bounded by the sphere about the points' mean
             world = s.position + s.points @ rot[i].T
             center = world.mean(axis=0)
-            kind[i], pos[i] = SPHERE, center
-            params[i, 0] = float(np.max(np.linalg.norm(world - center, axis=1)))
-    return kind, pos, rot, params
+            f = hull_faces(world)
+            kind[i], pos[i] = HULL, center
+            params[i] = (float(np.max(np.linalg.norm(world - center, axis=1))), rows,
+                         rows + len(f))
+            faces.append(f)
+            rows += len(f)
+    return kind, pos, rot, params, np.ascontiguousarray(np.vstack(faces))
 
 
 @njit(cache=True, fastmath=False)
-def _signed(px, py, pz, kind, pos, rot, params, k):
+def _signed(px, py, pz, kind, pos, rot, params, hull, k):
+    """Signed distance from p to obstacle k, a hull's as its bounding sphere (a lower bound:
+    the bound tests); :func:`_signed_tight` is exact for a hull too."""
     dx, dy, dz = px - pos[k, 0], py - pos[k, 1], pz - pos[k, 2]
-    if kind[k] == SPHERE:
+    if kind[k] == SPHERE or kind[k] == HULL:
         return math.sqrt(dx * dx + dy * dy + dz * dz) - params[k, 0]
     # into the shape's frame: local = R^T (p - c)
     lx = rot[k, 0, 0] * dx + rot[k, 1, 0] * dy + rot[k, 2, 0] * dz
@@ -68,10 +79,20 @@ def _signed(px, py, pz, kind, pos, rot, params, k):
     return math.sqrt(orad * orad + oax * oax) + min(max(radial, axial), 0.0)
 
 
-GROUP_SIZE = 24
+@njit(cache=True)
+def _signed_tight(px, py, pz, kind, pos, rot, params, hull, k):
+    """Signed distance from p to obstacle k, exact for a hull (no faces: its sphere)."""
+    d = _signed(px, py, pz, kind, pos, rot, params, hull, k)
+    if kind[k] != HULL or params[k, 2] <= params[k, 1]:
+        return d
+    return max(d, hull_signed(px, py, pz, hull, int(params[k, 1]), int(params[k, 2])))
+
+
+GROUP_SIZE = 12
 """Spheres per bounding group: a joint's spheres are cut into runs of at most this many
 along their principal axis. One group per joint had ~150 spheres on the base and ~70 on the
-forearm of the fitted set, all checked whenever an obstacle came near any of them."""
+forearm of the first fitted set, all checked whenever an obstacle came near any of them;
+under the joint-level bounds, 12 planned MotionBenchMaker problems fastest of 6-48."""
 
 
 def _groups(joints: np.ndarray, centers: np.ndarray, size: int) -> tuple[np.ndarray, ...]:
@@ -151,7 +172,7 @@ def _placed(fr, fp, j, c):
 
 @njit(cache=True)
 def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot,
-                    params, fr, fp, where, stop=-np.inf, first_group=0):
+                    params, hull, fr, fp, where, stop=-np.inf, first_group=0):
     """min(signed distance, limit) of one configuration, through two levels of bounds: a
     joint's spheres are skipped for an obstacle whose distance to the joint's bounding
     sphere (``jb``) is at least the best so far, then a group's (the signed distance is
@@ -174,7 +195,7 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
         x, y, z = _placed(fr, fp, j, jb[j])
         any_near = False
         for k in range(kind.shape[0]):
-            near[k] = _signed(x, y, z, kind, pos, rot, params, k) - jb[j, 3] < best
+            near[k] = _signed(x, y, z, kind, pos, rot, params, hull, k) - jb[j, 3] < best
             any_near = any_near or near[k]
         if not any_near:
             g = g_end
@@ -182,7 +203,7 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
         for h in range(g, g_end):
             x, y, z = _placed(fr, fp, j, gc[h])
             for k in range(kind.shape[0]):
-                if not near[k] or _signed(x, y, z, kind, pos, rot, params, k) - gr[h] >= best:
+                if not near[k] or _signed(x, y, z, kind, pos, rot, params, hull, k) - gr[h] >= best:
                     continue
                 for s_i in range(gs[h], ge[h]):
                     cx = (fp[j, 0] + fr[j, 0, 0] * sc[s_i, 0] + fr[j, 0, 1] * sc[s_i, 1]
@@ -191,7 +212,7 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
                           + fr[j, 1, 2] * sc[s_i, 2])
                     cz = (fp[j, 2] + fr[j, 2, 0] * sc[s_i, 0] + fr[j, 2, 1] * sc[s_i, 1]
                           + fr[j, 2, 2] * sc[s_i, 2])
-                    d = _signed(cx, cy, cz, kind, pos, rot, params, k) - sr[s_i]
+                    d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k) - sr[s_i]
                     if d < best:
                         best = d
                         where[0], where[1] = s_i, k
@@ -214,7 +235,7 @@ def fixed_groups(gj):
 
 
 @njit(cache=True)
-def fixed_clearance(sj, sc, sr, kind, pos, rot, params):
+def fixed_clearance(sj, sc, sr, kind, pos, rot, params, hull):
     """Least signed distance of the base's spheres (joint 0: the world frame) to the
     obstacles, the same in every configuration."""
     best = np.inf
@@ -222,13 +243,13 @@ def fixed_clearance(sj, sc, sr, kind, pos, rot, params):
         if sj[s_i] != 0:
             continue
         for k in range(kind.shape[0]):
-            best = min(best, _signed(sc[s_i, 0], sc[s_i, 1], sc[s_i, 2], kind, pos, rot,
-                                     params, k) - sr[s_i])
+            best = min(best, _signed_tight(sc[s_i, 0], sc[s_i, 1], sc[s_i, 2], kind, pos,
+                                           rot, params, hull, k) - sr[s_i])
     return best
 
 
 @njit(cache=True)
-def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot, params):
+def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot, params, hull):
     """Minimum signed distance of each configuration of Q (N, 7) to the packed obstacles."""
     out = np.empty(Q.shape[0])
     fr = np.empty((jr.shape[0] + 1, 3, 3))
@@ -236,12 +257,12 @@ def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, ro
     where = np.empty(2, np.int64)
     for n in range(Q.shape[0]):
         out[n] = _distance_below(Q[n], np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind,
-                                 pos, rot, params, fr, fp, where)
+                                 pos, rot, params, hull, fr, fp, where)
     return out
 
 
 @njit(cache=True)
-def closest_pair(q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot, params):
+def closest_pair(q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot, params, hull):
     """(distance, sphere in kernel order, obstacle) of the nearest pair in one configuration:
     witness points need only that one pair (numpy over every sphere and obstacle took ~1.3
     ms a call, several calls a plan)."""
@@ -249,13 +270,13 @@ def closest_pair(q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot, 
     fp = np.empty((jr.shape[0] + 1, 3))
     where = np.empty(2, np.int64)
     d = _distance_below(q, np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot,
-                        params, fr, fp, where)
+                        params, hull, fr, fp, where)
     return d, where[0], where[1]
 
 
 @njit(cache=True)
 def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos,
-                  rot, params):
+                  rot, params, hull):
     """True when all ``steps + 1`` evenly spaced states from q0 to q1 keep ``margin``.
 
     States are visited coarse to fine (ends, middle, quarters, ...) so a blocked segment is
@@ -293,7 +314,7 @@ def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
         # the limit sits just above the margin: "nothing below it" is distinguishable from
         # "a sphere exactly at the margin" (which blocks)
         if _distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos,
-                           rot, params, fr, fp, where, margin, first) <= margin:
+                           rot, params, hull, fr, fp, where, margin, first) <= margin:
             return False
         first = fixed_groups(gj)  # the base passed once: it passes in every state
     return True

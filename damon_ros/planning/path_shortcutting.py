@@ -32,9 +32,9 @@ def _clear(a, b, margin, resolution, robot, obstacles):
     for i in range(a.shape[0]):
         steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params = obstacles
+    kind, pos, rot, params, hull = obstacles
     return sphere_kernels.segment_clear(a, b, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge,
-                                        gc, gr, jb, kind, pos, rot, params)
+                                        gc, gr, jb, kind, pos, rot, params, hull)
 
 
 @njit(cache=True)

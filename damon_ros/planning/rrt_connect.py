@@ -37,9 +37,9 @@ def _motion_free(a, b, margin, resolution, robot, obstacles):
     for i in range(a.shape[0]):
         steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params = obstacles
+    kind, pos, rot, params, hull = obstacles
     return sphere_kernels.segment_clear(a, b, max(steps, 1), margin, jr, jp, sj, sc, sr, gj,
-                                        gs, ge, gc, gr, jb, kind, pos, rot, params)
+                                        gs, ge, gc, gr, jb, kind, pos, rot, params, hull)
 
 
 @njit(cache=True)
@@ -56,7 +56,7 @@ def _free_prefix(a, b, margin, resolution, robot, obstacles, first):
     if steps == 0:
         return 1.0
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params = obstacles
+    kind, pos, rot, params, hull = obstacles
     fr = np.empty((jr.shape[0] + 1, 3, 3))
     fp = np.empty((jr.shape[0] + 1, 3))
     q = np.empty(a.shape[0])
@@ -66,7 +66,7 @@ def _free_prefix(a, b, margin, resolution, robot, obstacles, first):
         for i in range(a.shape[0]):
             q[i] = a[i] + (b[i] - a[i]) * t
         if sphere_kernels._distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc,
-                                          gr, jb, kind, pos, rot, params, fr, fp,
+                                          gr, jb, kind, pos, rot, params, hull, fr, fp,
                                           where, margin, first) <= margin:
             return (k - 1) / steps
     return 1.0

@@ -51,9 +51,10 @@ def test_recorded_bulge_bounds_the_excess():
         depth = _depth(hs, raw.centers[on])
         assert np.all(depth > 0.0)  # centres inside the meshes
         assert np.allclose(raw.radii[on] - depth, raw.bulge[on], atol=1e-6)
-    # the shipped fit (bound 10 mm) needs 576 spheres, not VAMP's ~60: a worst-case bound
+    # the shipped fit (bound 7 mm) needs 1,268 spheres, not VAMP's ~60: a worst-case bound
     # is costly on flat faces; the count is pinned here so that a refit is a visible change
-    assert len(raw.radii) <= 600
+    # (the kernels' joint-level bounds keep a state's cost where 576 spheres had it)
+    assert len(raw.radii) <= 1300
     assert raw.bulge.max() <= 0.015
     assert panda_inflation().max() > 2 * raw.bulge.max()
 
