@@ -95,18 +95,30 @@ def planner_table(records: list[dict]) -> list[str]:
 
 
 def mbm_table(records: list[dict]) -> list[str]:
+    """Per set and planner: problems, solved, contacts on the exact meshes, plan time p50/p95
+    and path length p50, then every set together; problems refused before planning (a goal
+    outside the joint limits) are counted beneath."""
     by: dict[tuple[str, str], list[dict]] = defaultdict(list)
     for r in records:
         if r.get("set") and r.get("planner"):
             by[(r["set"], r["planner"])].append(r)
-    lines = ["| set | planner | problems | solved | median plan (ms) | p95 plan (ms) |",
-             "|---|---|---|---|---|---|"]
-    for (name, planner), rs in sorted(by.items()):
+            by[("all", r["planner"])].append(r)
+    lines = ["| set | planner | problems | solved | contacts | plan p50 (ms) | plan p95 (ms) | "
+             "path p50 (rad) |", "|---|---|---|---|---|---|---|---|"]
+    for (name, planner), rs in sorted(by.items(), key=lambda kv: (kv[0][0] == "all", kv[0])):
         times = [1e3 * r["planning_time_s"] for r in rs]
-        solved = [1e3 * r["planning_time_s"] for r in rs if r.get("success")]
-        lines.append(f"| {name} | {planner} | {len(rs)} | "
-                     f"{100 * np.mean([bool(r.get('success')) for r in rs]):.0f} % | "
-                     f"{_fmt(_median(solved or times), 1)} | {_fmt(_p(times, 95), 1)} |")
+        solved = [r for r in rs if r.get("success")]
+        touches = sum(r.get("error") == "path touches meshes" for r in rs)
+        label = f"**{name}**" if name == "all" else name
+        lines.append(f"| {label} | {planner} | {len(rs)} | {len(solved)} "
+                     f"({100 * len(solved) / len(rs):.1f} %) | {touches} | "
+                     f"{_fmt(_median([1e3 * r['planning_time_s'] for r in solved] or times), 1)}"
+                     f" | {_fmt(_p(times, 95), 1)} | "
+                     f"{_fmt(_median([r['path_length_rad'] for r in solved]), 2)} |")
+    refused = [r for r in records if r.get("set") and not r.get("planner")]
+    if refused:
+        lines += ["", f"Refused before planning ({len(refused)}): " + "; ".join(
+            str(r.get("error")) for r in refused)]
     return lines
 
 

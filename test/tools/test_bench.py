@@ -64,3 +64,23 @@ def test_a_colliding_planner_run_is_scored_as_contact():
     record = run_scenario(scenario, runtime, "reckless", mesh, fast, SimConfig())
     assert record.collided and not record.success
     assert record.min_clearance_m <= 0.0
+
+
+def test_mbm_table_counts_contacts_refusals_and_every_set_together():
+    from damon_ros.tools.report import mbm_table
+
+    rec = [{"set": "box", "planner": "damon", "success": True, "planning_time_s": 0.01,
+            "path_length_rad": 2.0, "error": None},
+           {"set": "box", "planner": "damon", "success": False, "planning_time_s": 0.5,
+            "path_length_rad": None, "error": "path touches meshes"},
+           {"set": "cage", "planner": "damon", "success": True, "planning_time_s": 0.03,
+            "path_length_rad": 4.0, "error": None},
+           {"set": "cage", "scenario": "cage/scene0001.yaml", "success": False,
+            "error": "goal outside the joint limits"}]
+    lines = mbm_table(rec)
+    box = next(line for line in lines if line.startswith("| box |"))
+    assert "| 2 | 1 (50.0 %) | 1 |" in box and "| 10.0 |" in box
+    total = next(line for line in lines if line.startswith("| **all** |"))
+    assert "| 3 | 2 (66.7 %) | 1 |" in total and "| 3.00 |" in total
+    assert lines.index(total) > lines.index(box)
+    assert "Refused before planning (1)" in lines[-1]
