@@ -434,9 +434,9 @@ class GraphPlanner:
         """States on a climb of the fast model's clearance from ``q_goal`` (finite-difference
         gradient, ``step`` rad a move): the way out of a grasp pocket. Random perturbations
         of a goal inside a shelf mostly push the hand into the shelf; the gradient points
-        away from what is close. Returns the states that reach the full margin (the first
-        first), possibly none."""
-        if not obstacles:
+        away from what is close. Returns up to three states that keep the full margin,
+        nearest the goal first, possibly none (also on the meshes alone: no gradient)."""
+        if not obstacles or self.robot.collision != "fast":
             return np.empty((0, 7))
         q, out, eye = q_goal.copy(), [], np.eye(7) * 1e-4
         for _ in range(steps):
@@ -569,8 +569,9 @@ class GraphPlanner:
     def _shortened(self, path: np.ndarray, query: _Query) -> np.ndarray | None:
         """A sampled route shortened and certified, or None when it fails certification.
         On the fast model the compiled shortcut goes first (`path_shortcutting`: the same
-        questions as `_shortcut` without self-collision, ~10x cheaper); where its result
-        is refused (self-collision, a goal only the meshes accept), `_shortcut` decides."""
+        questions as `_shortcut`, without self-collision and without a Python call per
+        segment); where its result is refused (self-collision, a goal only the meshes
+        accept), `_shortcut` decides."""
         if not self.config.shortcut:
             return path if self._certified(path, query) else None
         if self.robot.collision == "fast":
