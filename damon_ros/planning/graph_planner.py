@@ -256,9 +256,11 @@ class GraphPlanner:
                                             exact_band=exact))
 
     def clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
+        """The robot model's distance alone (no witness points: a start margin is asked for
+        at every path check, ~20 µs this way against ~0.4 ms with them)."""
         if not obstacles:
             return math.inf
-        return float(self.robot.clearance(q, obstacles).distance)
+        return float(self.robot.distances(np.asarray(q, float)[None], obstacles)[0])
 
     def _start_margin(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
         """The margin demanded of a first segment (it leaves the current state): λ, or less
