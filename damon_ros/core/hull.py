@@ -56,10 +56,10 @@ def hull_faces(points: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return np.hstack([corners.reshape(-1, 9), normals, offsets[:, None]])
 
 
-@njit(cache=True, inline="always")
-def _triangle_distance2(px, py, pz, f):
-    """Squared distance from p to the triangle in face row ``f`` (closest-point regions
-    of the triangle: vertices, edges, interior)."""
+@njit(cache=True)
+def _closest_on_triangle(px, py, pz, f):
+    """The point of the triangle in face row ``f`` nearest p, by its closest-point regions
+    (the corners, the edges, the interior)."""
     ax, ay, az = f[0], f[1], f[2]
     abx, aby, abz = f[3] - ax, f[4] - ay, f[5] - az
     acx, acy, acz = f[6] - ax, f[7] - ay, f[8] - az
@@ -67,37 +67,31 @@ def _triangle_distance2(px, py, pz, f):
     d1 = abx * apx + aby * apy + abz * apz
     d2 = acx * apx + acy * apy + acz * apz
     if d1 <= 0.0 and d2 <= 0.0:
-        return apx * apx + apy * apy + apz * apz
+        return ax, ay, az
     bpx, bpy, bpz = px - f[3], py - f[4], pz - f[5]
     d3 = abx * bpx + aby * bpy + abz * bpz
     d4 = acx * bpx + acy * bpy + acz * bpz
     if d3 >= 0.0 and d4 <= d3:
-        return bpx * bpx + bpy * bpy + bpz * bpz
+        return f[3], f[4], f[5]
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         v = d1 / (d1 - d3)
-        x, y, z = apx - v * abx, apy - v * aby, apz - v * abz
-        return x * x + y * y + z * z
+        return ax + v * abx, ay + v * aby, az + v * abz
     cpx, cpy, cpz = px - f[6], py - f[7], pz - f[8]
     d5 = abx * cpx + aby * cpy + abz * cpz
     d6 = acx * cpx + acy * cpy + acz * cpz
     if d6 >= 0.0 and d5 <= d6:
-        return cpx * cpx + cpy * cpy + cpz * cpz
+        return f[6], f[7], f[8]
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
         w = d2 / (d2 - d6)
-        x, y, z = apx - w * acx, apy - w * acy, apz - w * acz
-        return x * x + y * y + z * z
+        return ax + w * acx, ay + w * acy, az + w * acz
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        x = bpx - w * (f[6] - f[3])
-        y = bpy - w * (f[7] - f[4])
-        z = bpz - w * (f[8] - f[5])
-        return x * x + y * y + z * z
-    # interior: the distance to the face's plane
-    s = f[9] * px + f[10] * py + f[11] * pz + f[12]
-    return s * s
+        return f[3] + w * (f[6] - f[3]), f[4] + w * (f[7] - f[4]), f[5] + w * (f[8] - f[5])
+    s = f[9] * px + f[10] * py + f[11] * pz + f[12]  # interior: onto the face's plane
+    return px - s * f[9], py - s * f[10], pz - s * f[11]
 
 
 @njit(cache=True)
@@ -116,7 +110,8 @@ def hull_signed(px, py, pz, faces, start, end):
     for i in range(start, end):
         f = faces[i]
         if f[9] * px + f[10] * py + f[11] * pz + f[12] > 0.0:
-            best = min(best, _triangle_distance2(px, py, pz, f))
+            x, y, z = _closest_on_triangle(px, py, pz, f)
+            best = min(best, (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2)
     return math.sqrt(best)
 
 
@@ -130,7 +125,7 @@ def hull_signed_many(P, faces):
 
 
 def closest_point(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The hull's surface point nearest ``p`` (witness points; numpy, one point)."""
+    """The hull's surface point nearest ``p`` (witness points; one point)."""
     best, out = math.inf, p
     values = faces[:, 9:12] @ p + faces[:, 12]
     inside = bool(np.all(values <= 0.0))
@@ -140,35 +135,8 @@ def closest_point(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
         else:
             if value <= 0.0:
                 continue
-            q = _closest_on_triangle(p, f[0:3], f[3:6], f[6:9])
+            q = np.array(_closest_on_triangle(p[0], p[1], p[2], f))
             d = float(np.linalg.norm(p - q))
         if d < best:
             best, out = d, q
     return out
-
-
-def _closest_on_triangle(p, a, b, c) -> np.ndarray:
-    """Nearest point to p on triangle abc (numpy; the same regions as the kernel)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab @ ap, ac @ ap
-    if d1 <= 0 and d2 <= 0:
-        return a
-    bp = p - b
-    d3, d4 = ab @ bp, ac @ bp
-    if d3 >= 0 and d4 <= d3:
-        return b
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0 and d1 >= 0 and d3 <= 0:
-        return a + d1 / (d1 - d3) * ab
-    cp = p - c
-    d5, d6 = ab @ cp, ac @ cp
-    if d6 >= 0 and d5 <= d6:
-        return c
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0 and d2 >= 0 and d6 <= 0:
-        return a + d2 / (d2 - d6) * ac
-    va = d3 * d6 - d5 * d4
-    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
-        return b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b)
-    denom = 1.0 / (va + vb + vc)
-    return a + ab * (vb * denom) + ac * (vc * denom)

@@ -318,3 +318,16 @@ def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
             return False
         first = fixed_groups(gj)  # the base passed once: it passes in every state
     return True
+
+
+@njit(cache=True)
+def motion_clear(a, b, margin, resolution, robot, obstacles):
+    """`segment_clear` with its states ``resolution`` rad apart (max norm) and the model and
+    obstacles as the tuples `pack_robot` and `pack_obstacles` return: the searches' call."""
+    steps = 0
+    for i in range(a.shape[0]):
+        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
+    kind, pos, rot, params, hull = obstacles
+    return segment_clear(a, b, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind,
+                         pos, rot, params, hull)

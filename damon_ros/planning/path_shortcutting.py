@@ -13,7 +13,6 @@ which certifies the result and falls back to its own shortcut when that refuses 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -22,19 +21,10 @@ from numba import njit
 from damon_ros.core import sphere_kernels
 from damon_ros.core.shapes import Shape
 
+_clear = sphere_kernels.motion_clear
+
 PULL_FRACTIONS = (1.0, 0.5, 0.25, 0.1)
 """How far toward the neighbours' midpoint a waypoint is tried, largest first."""
-
-
-@njit(cache=True)
-def _clear(a, b, margin, resolution, robot, obstacles):
-    steps = 0
-    for i in range(a.shape[0]):
-        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
-    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params, hull = obstacles
-    return sphere_kernels.segment_clear(a, b, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge,
-                                        gc, gr, jb, kind, pos, rot, params, hull)
 
 
 @njit(cache=True)

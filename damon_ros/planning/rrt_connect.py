@@ -32,17 +32,6 @@ SLICE = 256
 
 
 @njit(cache=True)
-def _motion_free(a, b, margin, resolution, robot, obstacles):
-    steps = 0
-    for i in range(a.shape[0]):
-        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
-    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params, hull = obstacles
-    return sphere_kernels.segment_clear(a, b, max(steps, 1), margin, jr, jp, sj, sc, sr, gj,
-                                        gs, ge, gc, gr, jb, kind, pos, rot, params, hull)
-
-
-@njit(cache=True)
 def _free_prefix(a, b, margin, resolution, robot, obstacles, first):
     """How far (0-1) from ``a`` toward ``b`` the states at ``resolution`` keep ``margin``,
     walked in order from ``a`` (a tree node). Groups before ``first`` are not checked: the
@@ -188,7 +177,8 @@ def rrt_connect(spheres, q_start: np.ndarray, q_goal: np.ndarray, lower: np.ndar
     packed = sphere_kernels.pack_obstacles(tuple(obstacles))
     robot = tuple(spheres.kernel_args)
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
-    if _motion_free(nodes[0, 0], nodes[1, 0], min(end_margins), resolution, robot, packed):
+    if sphere_kernels.motion_clear(nodes[0, 0], nodes[1, 0], min(end_margins), resolution,
+                                   robot, packed):
         return np.array([q_start, q_goal])
     _seed(int(seed))
     state = np.zeros(1, np.int64)
