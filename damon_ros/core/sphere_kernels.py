@@ -46,12 +46,15 @@ def pack_obstacles(obstacles: Sequence[Shape]):
             kind[i], params[i] = BOX, 0.5 * np.asarray(s.size)
         elif s.kind == "cylinder":
             kind[i], params[i, :2] = CYLINDER, (s.size[0], 0.5 * s.size[1])
+        elif len(s.points) == 1:  # a single point: exactly a sphere of radius 0
+            kind[i], pos[i] = SPHERE, s.position + rot[i] @ s.points[0]
         else:  # points: the hull, bounded by the sphere about the points' mean
             world = s.position + s.points @ rot[i].T
             center = world.mean(axis=0)
             f = hull_faces(world)
             kind[i], pos[i] = HULL, center
-            params[i] = (float(np.max(np.linalg.norm(world - center, axis=1))), rows,
+            # the bound must contain the hull, which `hull_faces` may thicken by 1e-7 m
+            params[i] = (float(np.max(np.linalg.norm(world - center, axis=1))) + 1e-6, rows,
                          rows + len(f))
             faces.append(f)
             rows += len(f)
