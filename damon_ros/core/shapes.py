@@ -205,27 +205,3 @@ def surface_samples(shape: Shape, spacing: float = 0.01) -> np.ndarray:
     else:
         return enclosing_vertices(shape)
     return shape.position + local @ shape.rotation().T
-
-
-def points_box(shape: Shape) -> Shape | None:
-    """The principal-axes box of a point set when it is smaller than the set's bounding
-    sphere about its mean, else None (then the sphere stands for the set).
-
-    The fast collision model replaces a point set by one primitive that contains its hull;
-    a sphere is cheap, but a flat or elongated hull (a tracked blob pushed back along the
-    camera's rays) fills a fraction of it and its sphere swallows nearby goals.
-    """
-    if shape.kind != "points" or len(shape.points) < 4:
-        return None
-    world = shape.position + shape.points @ shape.rotation().T
-    centre = world.mean(axis=0)
-    radius = float(np.max(np.linalg.norm(world - centre, axis=1)))
-    _, _, vt = np.linalg.svd(world - centre, full_matrices=False)
-    axes = vt.T if np.linalg.det(vt.T) > 0 else vt.T * np.array([1.0, 1.0, -1.0])
-    local = (world - centre) @ axes
-    low, high = local.min(axis=0), local.max(axis=0)
-    size = high - low
-    if np.any(size < 1e-6) or np.prod(size) >= 4.0 / 3.0 * np.pi * radius**3:
-        return None
-    q = Rotation.from_matrix(axes).as_quat()
-    return Shape("box", tuple(size), centre + axes @ (0.5 * (low + high)), q, name=shape.name)
