@@ -131,8 +131,9 @@ class Sdf:
             center = world.mean(axis=0)
             self.kind = "sphere"
             self.radius = float(np.max(np.linalg.norm(world - center, axis=1)))
-            faces = hull_faces(world) if len(world) > 1 else np.zeros((0, 13))
-            self.faces = faces if len(faces) else None  # a single point: exactly its sphere
+            if len(world) > 1:  # a single point is exactly its sphere of radius 0
+                faces = hull_faces(world)
+                self.faces = faces if len(faces) else None
         elif shape.kind == "box":
             self.half = 0.5 * np.array(shape.size)[:, None]
         elif shape.kind == "sphere":

@@ -209,12 +209,7 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
                 if not near[k] or _signed(x, y, z, kind, pos, rot, params, hull, k) - gr[h] >= best:
                     continue
                 for s_i in range(gs[h], ge[h]):
-                    cx = (fp[j, 0] + fr[j, 0, 0] * sc[s_i, 0] + fr[j, 0, 1] * sc[s_i, 1]
-                          + fr[j, 0, 2] * sc[s_i, 2])
-                    cy = (fp[j, 1] + fr[j, 1, 0] * sc[s_i, 0] + fr[j, 1, 1] * sc[s_i, 1]
-                          + fr[j, 1, 2] * sc[s_i, 2])
-                    cz = (fp[j, 2] + fr[j, 2, 0] * sc[s_i, 0] + fr[j, 2, 1] * sc[s_i, 1]
-                          + fr[j, 2, 2] * sc[s_i, 2])
+                    cx, cy, cz = _placed(fr, fp, j, sc[s_i])
                     d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k) - sr[s_i]
                     if d < best:
                         best = d
@@ -309,7 +304,7 @@ def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
         if not visited[index]:
             order[n] = index
             n += 1
-    first = 0
+    first, base = 0, fixed_groups(gj)
     for i in range(n):
         t = order[i] / steps if steps > 0 else 0.0
         for a in range(q0.shape[0]):
@@ -319,17 +314,24 @@ def segment_clear(q0, q1, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
         if _distance_below(q, margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos,
                            rot, params, hull, fr, fp, where, margin, first) <= margin:
             return False
-        first = fixed_groups(gj)  # the base passed once: it passes in every state
+        first = base  # the base passed once: it passes in every state
     return True
+
+
+@njit(cache=True)
+def motion_steps(a, b, resolution):
+    """Steps from a to b with no joint moving more than ``resolution`` rad in one."""
+    steps = 0
+    for i in range(a.shape[0]):
+        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
+    return steps
 
 
 @njit(cache=True)
 def motion_clear(a, b, margin, resolution, robot, obstacles):
     """`segment_clear` with its states ``resolution`` rad apart (max norm) and the model and
     obstacles as the tuples `pack_robot` and `pack_obstacles` return: the searches' call."""
-    steps = 0
-    for i in range(a.shape[0]):
-        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
+    steps = motion_steps(a, b, resolution)
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
     kind, pos, rot, params, hull = obstacles
     return segment_clear(a, b, steps, margin, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind,

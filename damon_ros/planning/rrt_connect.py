@@ -39,9 +39,7 @@ def _free_prefix(a, b, margin, resolution, robot, obstacles, first):
     a narrow pocket only this way: from a grasp goal inside a shelf, almost every full step
     toward a random sample hits the shelf, and all-or-nothing extension left that tree at
     2-50 nodes while the other grew to thousands."""
-    steps = 0
-    for i in range(a.shape[0]):
-        steps = max(steps, int(math.ceil(abs(b[i] - a[i]) / resolution)))
+    steps = sphere_kernels.motion_steps(a, b, resolution)
     if steps == 0:
         return 1.0
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
