@@ -164,10 +164,10 @@ def test_a_new_trajectory_replaces_the_old_one(arm: Loop):
     assert arm.settle()
     q0 = arm.q()
     first = q0 + np.array([0.3, 0, 0, 0, 0, 0, 0])
-    # 10 s: the replacement must arrive before the arm is near `first` (a busy client sent
-    # it too late for a 3 s move)
-    assert ACCEPTED in arm.send(trajectory([10.0], [first], [np.zeros(7)]))
-    assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.01, 3.0), arm.logs()
+    # 30 s: the replacement must arrive before the arm is near `first` (a busy client sent
+    # it too late for a 3 s move, and once, under two busy loops, ~7 s into a 10 s one)
+    assert ACCEPTED in arm.send(trajectory([30.0], [first], [np.zeros(7)]))
+    assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.01, 10.0), arm.logs()
     second = q0 + np.array([-0.05, 0, 0, 0, 0, 0, 0])
     assert ACCEPTED in arm.send(trajectory([1.0], [second], [np.zeros(7)]))
     assert _reached(arm, second, 2e-3), arm.logs()
