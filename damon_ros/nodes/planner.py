@@ -2,11 +2,13 @@
 
 Thin adapter over :class:`damon_ros.planning.reactive.ReactivePlanner`: it parses parameters and
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
-decides. Joint states and obstacle arrays are taken by reader threads of their own
-(`TopicReader`: the executor let both go stale), so they keep arriving while a route
-is computed; each batch of obstacle arrays is decided on at once in its reader thread,
-goals, services and the fixed-rate path check in the (single-threaded) executor, one at a
-time (``deciding``).
+decides. Obstacle arrays are taken by a reader thread of its own (`TopicReader`: the
+executor let them go stale) that sleeps until one arrives, so they keep arriving while a
+route is computed; each batch is decided on at once in that thread, goals, services and
+the fixed-rate path check in the (single-threaded) executor, one at a time (``deciding``).
+Joint states are not read as they come (1 kHz from franka or mock_panda): a decision takes
+the newest one from its subscription (an `Inbox` keeping one message) when it needs it, so
+the planner pays for the states it uses, not for 1,000 a second.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from damon_ros.ros.stamps import (
     to_duration,
     to_stamp,
 )
-from damon_ros.ros.topic_reader import TopicReader
+from damon_ros.ros.topic_reader import Inbox, TopicReader
 
 NAME = "planner"
 
@@ -81,8 +83,6 @@ PARAMETERS = (
           "(s; 0 = off, for a setup without perception)", 0.0, 60.0),
     Param("goal_wait_timeout_s", 5.0, "a goal waiting for obstacle data is dropped after "
           "this long (s), never started by surprise later", 0.1, 3600.0),
-    Param("joint_state_period_s", 0.005, "joint states are taken every this many s",
-          0.001, 1.0),
     Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
           0.001, 60.0),
     Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
@@ -173,11 +173,11 @@ class PlannerNode(Node):
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
         self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
         self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
-        self.joint_states = TopicReader(self, JointState, p["joint_states_topic"],
-                                        p["joint_state_period_s"], self._on_joint_state,
-                                        suffix="joint_states")
+        # the newest joint state only: `_take_joint_state` reads it when a decision needs it
+        self.joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states",
+                                  qos=1)
         self._obstacles_received: float | None = None  # first array of the pending batch
-        self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES, 0.002,
+        self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES,
                                            self._on_obstacles, suffix="obstacles",
                                            qos=qos_profile_sensor_data,
                                            on_drained=self._on_obstacles_drained)
@@ -194,18 +194,27 @@ class PlannerNode(Node):
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
 
     # ---- inputs -----------------------------------------------------------------------
-    def _on_joint_state(self, msg: JointState) -> None:
-        q = read_joint_state(self.joint_reader, msg, self.problems, self.get_logger().info)
-        if q is None:
-            return
-        qd = self.joint_reader.velocities(msg)
-        now = clock_seconds(self)
-        measured = now if is_zero(msg.header.stamp) else min(stamp_seconds(msg.header.stamp), now)
+    def _take_joint_state(self) -> None:
+        """Keep the newest joint state waiting in the subscription, if a good one is.
+
+        Its age counts from its reception by the middleware, not from this call."""
         with self.lock:
-            self.q, self.qd, self.q_stamp, self.q_measured_at = q, qd, now, measured
+            for item in self.joint_states.take_all():
+                msg = item.msg
+                q = read_joint_state(self.joint_reader, msg, self.problems,
+                                     self.get_logger().info)
+                if q is None:
+                    continue
+                now = clock_seconds(self)
+                received = now - max(0.0, time.monotonic() - item.arrived)
+                measured = (received if is_zero(msg.header.stamp)
+                            else min(stamp_seconds(msg.header.stamp), now))
+                self.q, self.qd = q, self.joint_reader.velocities(msg)
+                self.q_stamp, self.q_measured_at = received, measured
 
     def _current_state(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(positions, velocities or None) of a fresh joint state; (None, None) if stale."""
+        self._take_joint_state()
         with self.lock:
             if self.q is None or clock_seconds(self) - self.q_stamp > self.joint_state_timeout:
                 return None, None
@@ -337,6 +346,7 @@ class PlannerNode(Node):
         so that a brake from an old state has not ended on arrival (JTC refuses a stamped
         trajectory whose end has passed); the arm then settles at the brake's end. A hold at
         rest goes out unstamped: it starts on arrival."""
+        self._take_joint_state()
         with self.lock:
             q, qd, measured_at = self.q, self.qd, self.q_measured_at
         if q is None:
@@ -403,6 +413,7 @@ class PlannerNode(Node):
         return MarkerArray(markers=[vertices, route])
 
     def _publish_status(self) -> None:
+        self._take_joint_state()  # the age it reports is that of the newest state
         rt = self.runtime
         stats = rt.stats
         latencies = stats.replan_latency_ms

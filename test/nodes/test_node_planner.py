@@ -7,10 +7,10 @@ message must cost exactly one clear log line (no traceback) in each node that re
 move nothing, and leave the node running. A killed node, restarted, must rejoin the others
 without their restart.
 
-The planner here reads every joint state (``joint_state_period_s`` 0; by default it samples
-them) so that one bad message is sure to reach it, mock_panda publishes at 250 Hz to keep
-that cheap, and the arm moves at 0.3 of its velocity limits so that motions last long
-enough to be interrupted.
+The planner takes the newest joint state when it needs one (at least with every 0.1 s
+status), so a bad one reaches it only when no good one follows: the bad-state test pauses
+mock_panda. mock_panda publishes at 250 Hz to keep the cell cheap, and the arm moves at 0.3
+of its velocity limits so that motions last long enough to be interrupted.
 """
 
 from __future__ import annotations
