@@ -168,6 +168,7 @@ class PlannerNode(Node):
         self.q_stamp = -math.inf
         self.q_measured_at = -math.inf  # the state's header stamp (reception if unset)
         self.last_event = "idle"
+        self._to_show = None  # a published route not yet visualised
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
@@ -365,8 +366,22 @@ class PlannerNode(Node):
 
     def _publish_trajectory(self, result) -> None:
         self.pub_traj.publish(self._trajectory_msg(result.trajectory.resample(0.02)))
-        self.pub_path.publish(self._tcp_path(result.path))
-        self.pub_graph.publish(self._graph_markers(result))
+        self._to_show = result  # its path and graph markers: `_publish_visualisation`
+
+    def _publish_visualisation(self) -> None:
+        """The last route's TCP path and searched subgraph, for RViz, from the status timer.
+
+        Why not with the trajectory: the markers hold up to 5,000 points built one Python
+        object at a time, and the path a forward kinematics per pose, 5-15 ms that the next
+        decision waited for (they ran under ``deciding``) and that the arm gains nothing
+        from. Nothing is built for a topic nobody subscribes to."""
+        result, self._to_show = self._to_show, None
+        if result is None:
+            return
+        if self.pub_path.get_subscription_count():
+            self.pub_path.publish(self._tcp_path(result.path))
+        if self.pub_graph.get_subscription_count():
+            self.pub_graph.publish(self._graph_markers(result))
 
     def _tcp_path(self, path: np.ndarray) -> Path:
         msg = Path()
@@ -413,6 +428,7 @@ class PlannerNode(Node):
         return MarkerArray(markers=[vertices, route])
 
     def _publish_status(self) -> None:
+        self._publish_visualisation()
         self._take_joint_state()  # the age it reports is that of the newest state
         rt = self.runtime
         stats = rt.stats
