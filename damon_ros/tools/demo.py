@@ -214,7 +214,8 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
         t_goal = time.time()
         result["goal_delay_s"] = t_goal - start_time
         result.update(_follow(executor, scenario, mesh, latest, rec, start_time, t_goal, procs))
-        result["cpu_cores"] = cpu_shares(cpu_before, _cpu(procs), time.time() - start_time)
+        result["cpu_cores"] = cpu_shares(cpu_before, _cpu(procs), time.time() - start_time,
+                                         "demo")
         result["load_avg"] = os.getloadavg()[0]
     finally:
         if recorder is not None:
