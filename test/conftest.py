@@ -14,8 +14,10 @@ import pytest
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels():
     from damon_ros.core.robot import Robot
-    from damon_ros.planning import path_shortcutting, rrt_connect
+    from damon_ros.planning import path_shortcutting, rrt_connect, space_time
 
-    spheres = Robot("fast").spheres
+    robot = Robot("fast")
+    spheres = robot.spheres
     rrt_connect.warm_up(spheres)
     path_shortcutting.warm_up(spheres)
+    space_time.warm_up(robot)

@@ -19,6 +19,7 @@ import numpy as np
 
 from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
+from damon_ros.planning.space_time import movers
 
 
 def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
@@ -51,6 +52,12 @@ def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
         points = np.vstack([shape.points, shape.points + step])
         return Shape("points", (), shape.position, shape.orientation, points, shape.name)
     return Shape(shape.kind, size, center, shape.orientation, name=shape.name)
+
+
+def _age(perception_age_s: float) -> float:
+    """The age of obstacle data for the prediction (an unknown age, inf, counts as none:
+    the prediction's own minimum age applies)."""
+    return perception_age_s if math.isfinite(perception_age_s) else 0.0
 
 
 @dataclass
@@ -108,10 +115,13 @@ class ReactivePlanner:
         self._still_since = 0.0
         self.stats = RuntimeStats()
 
-    def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> Scene:
-        """Obstacles now and swept along their velocities over the prediction horizon."""
+    def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]],
+              age_s: float = 0.0) -> Scene:
+        """Obstacles now, swept along their velocities over the prediction horizon, and the
+        moving ones (``age_s`` old) for the space-time check of timed trajectories."""
         h = self.config.prediction_horizon_s
-        return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles))
+        return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles),
+                     movers(obstacles, self.planner.config.prediction), age_s)
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
                  perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event:
@@ -132,7 +142,8 @@ class ReactivePlanner:
                 "(goal_wait_timeout_s)")
         self.pending_goal = None
         t0 = time.perf_counter()
-        result = self.planner.plan(q_now, goal, self.scene(obstacles), qd_start=qd_now)
+        result = self.planner.plan(q_now, goal, self.scene(obstacles, _age(perception_age_s)),
+                                   qd_start=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)
@@ -161,7 +172,7 @@ class ReactivePlanner:
         if timeout > 0 and perception_age_s > timeout and self.state == "executing":
             return self._hold(f"obstacle data is {perception_age_s:.2f} s old "
                               f"(limit {timeout:.2f} s)")
-        shapes = self.scene(obstacles)
+        shapes = self.scene(obstacles, _age(perception_age_s))
         if self.risk is not None and shapes.now:
             self.last_probability = float(self.risk(q_now, shapes.now))
         if self.state == "holding":
