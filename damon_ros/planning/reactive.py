@@ -81,6 +81,7 @@ class RuntimeConfig:
     perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
     goal_wait_s: float = 5.0  # a goal waiting for obstacle data is dropped after this long
     obstacle_source: str = "the obstacle topic"  # named in the waiting goal's message
+    space_time: bool = True  # timed trajectories checked against the movers' predictions
 
 
 @dataclass
@@ -120,8 +121,10 @@ class ReactivePlanner:
         """Obstacles now, swept along their velocities over the prediction horizon, and the
         moving ones (``age_s`` old) for the space-time check of timed trajectories."""
         h = self.config.prediction_horizon_s
+        moving = movers(obstacles, self.planner.config.prediction) if self.config.space_time \
+            else ()
         return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles),
-                     movers(obstacles, self.planner.config.prediction), age_s)
+                     moving, age_s)
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
                  perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event:

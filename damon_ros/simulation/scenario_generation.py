@@ -225,11 +225,12 @@ def _compound(name: str, color: str, rng: np.random.Generator, centre: np.ndarra
 def _crossing(obstacle: dict, a: np.ndarray, b: np.ndarray, rng: np.random.Generator,
               config: GenerationConfig) -> dict:
     """Moves ``obstacle`` in a straight line at a speed from the band through a point of
-    the hand's straight way from ``a`` to ``b``, reaching it ``t_cross`` s (0.3–3 s) into
-    the run: from 0.45–0.7 m before that point (it waits there if it starts early, or is
-    already on its way at t = 0 if the crossing is too soon to come from that far) to
-    0.45–0.7 m past it, where it stays. Its direction is mostly across the way, mostly
-    horizontal: a hand reaching over the table, a cart passing, a thrown object."""
+    the hand's straight way from ``a`` to ``b``, reaching it ``t_cross`` s into the run
+    (0.2–1.8 s: while a typical 1–1.5 s move is under way): from 0.45–0.7 m before that
+    point (it waits there if it starts early, or is already on its way at t = 0 if the
+    crossing is too soon to come from that far) to 0.45–0.7 m past it, where it stays.
+    Its direction is mostly across the way, mostly horizontal: a hand reaching over the
+    table, a cart passing, a thrown object."""
     way = (b - a) / np.linalg.norm(b - a)
     cross = a + rng.uniform(0.3, 0.7) * (b - a) + [rng.uniform(-0.05, 0.1),
                                                    rng.uniform(-0.05, 0.05),
@@ -241,7 +242,7 @@ def _crossing(obstacle: dict, a: np.ndarray, b: np.ndarray, rng: np.random.Gener
     d = math.cos(elevation) * (math.cos(heading) * across + math.sin(heading) * way)
     d = d + [0.0, 0.0, math.sin(elevation)]
     speed = rng.uniform(*config.speed)
-    t_cross = rng.uniform(0.3, 3.0)
+    t_cross = rng.uniform(0.2, 1.8)
     before, after = rng.uniform(0.45, 0.7), rng.uniform(0.45, 0.7)
     before = min(before, speed * t_cross)
     floor = 0.05  # m: neither end below the table top
