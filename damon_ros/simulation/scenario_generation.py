@@ -241,6 +241,7 @@ def _crossing(obstacle: dict, a: np.ndarray, b: np.ndarray, rng: np.random.Gener
     elevation = rng.uniform(-0.6, 0.6)
     d = math.cos(elevation) * (math.cos(heading) * across + math.sin(heading) * way)
     d = d + [0.0, 0.0, math.sin(elevation)]
+    d /= np.linalg.norm(d)  # the way may climb: across and way are not both horizontal
     speed = rng.uniform(*config.speed)
     t_cross = rng.uniform(0.2, 1.8)
     before, after = rng.uniform(0.45, 0.7), rng.uniform(0.45, 0.7)

@@ -126,3 +126,41 @@ def test_check_instants_keep_both_resolutions(fast):
         # states are on the trajectory's own samples or between them
         assert np.allclose(q, [np.array([np.interp(ti, tr.times, tr.positions[:, j])
                                          for j in range(7)]) for ti in t])
+
+
+def _sphere_at_distance(fast: Robot, states: np.ndarray, centre: np.ndarray,
+                        distance: float, name: str) -> Shape:
+    """A sphere at ``centre`` sized so the closest of ``states`` is ``distance`` from it."""
+    probe = Shape("sphere", (0.01,), centre)
+    d = float(fast.distances(states, [probe]).min())
+    return Shape("sphere", (0.01 + d - distance,), centre, name=name)
+
+
+def test_the_relaxed_start_margin_is_only_for_what_is_already_close(planner, fast):
+    """Something within λ of the start relaxes the first segment's margin for itself only:
+    a box the segment passes later keeps the full λ (it did not, and a direct route grazed
+    a static box 2 mm deep on the meshes beside a mover's swept shape)."""
+    q0, q1 = _long_move()
+    states = q0 + np.linspace(0, 1, 111)[:, None] * (q1 - q0)
+    tcp0, _ = fast.tcp_pose(q0)
+    mid, _ = fast.tcp_pose(states[55])
+    ahead = fast.tcp_pose(states[1])[0] - tcp0
+    behind = tcp0 - 0.15 * ahead / np.linalg.norm(ahead)  # the hand moves away from it
+    near = _sphere_at_distance(fast, q0[None], behind, 0.004, "near")
+    relaxed, full = planner._start_margin(q0, (near,)), planner.config.margin
+    assert relaxed < full
+    far = _sphere_at_distance(fast, states, mid + 0.25 * np.array([mid[0], mid[1], 0.0])
+                              / np.linalg.norm(mid[:2]), 0.5 * (relaxed + full), "far")
+    assert fast.distances(q0[None], [far])[0] > 0.1  # far from the start, close later
+    scene = Scene((near, far), (near, far))
+    query = graph_planner._Query(planner, q0, q1, scene)
+    assert query.start_margin == relaxed and query.start_near == (near,)
+    # one relaxed margin for both would certify the segment closer than λ to the far one
+    # (on the fast model alone: its refusals in the contact band go to the meshes)
+    assert planner.segment_free(q0, q1, (near, far), relaxed, exact=False)
+    assert not planner.segment_free(q0, q1, (far,), full, exact=False)
+    assert not query.segment_certified(q0, q1, first=True, band=False)
+    # the exact meshes still have their say, with λ for the far one too
+    assert query.segment_certified(q0, q1, first=True) == (
+        planner.segment_free(q0, q1, (near,), relaxed)
+        and planner.segment_free(q0, q1, (far,), full))
