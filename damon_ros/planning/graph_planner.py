@@ -82,7 +82,7 @@ class PlannerConfig:
     handover_s: float = 0.005  # with a fallback, the graph's lazy search hands over after this
     exact_goal_margin: float = 0.002  # m on the exact meshes for a goal close to an object
     prediction: Prediction = Prediction()  # where movers will be (space-time certification)
-    space_time_reroutes: int = 2  # re-routes around a mover's predicted region, then refuse
+    space_time_reroutes: int = 1  # re-routes around a mover's predicted region, then refuse
 
     def graph_budget(self) -> float:
         """s the graph's lazy search may take: the whole time budget without a fallback;
@@ -100,7 +100,7 @@ EXPERIENCE_REACH_RAD = 1.0
 """A stored route is tried for a query whose start and goal are this close to it."""
 MOVING_RAD_S = 0.05
 """Joint speed above which a new route starts where the arm will stop (`_route_moving`)."""
-START_DELAYS_S = (0.2, 0.4, 0.7, 1.0)
+START_DELAYS_S = (0.2, 0.4, 0.7, 1.0, 1.4)
 """Waits tried before a trajectory a mover would cross (`GraphPlanner._delayed`); below the
 runtime's stall time (1.5 s), after which a still arm is re-planned."""
 BRAKE_LATENCY_S = 0.03
@@ -396,12 +396,16 @@ class GraphPlanner:
             if delayed is not None:  # re-timed: wait where it stands until the mover passed
                 result.trajectory = delayed
                 break
-            if attempt == self.config.space_time_reroutes:
+            region = predicted_region(contact)
+            # a region over the goal or the start leaves no route around it: refuse now
+            hopeless = min(self.clearance(q_goal, (region,)),
+                           self.clearance(q_start, (region,))) <= margin
+            if attempt == self.config.space_time_reroutes or hopeless:
                 result = PlanResult(False, f"no route certified in space and time: "
                                     f"{contact.describe()}; holding position", goal_q=q_goal,
                                     edges_checked=result.edges_checked)
                 break
-            scene = replace(scene, ahead=(*scene.ahead, predicted_region(contact)))
+            scene = replace(scene, ahead=(*scene.ahead, region))
             result = self._route_moving(q_start, qd_start, q_goal, scene)
             if not result.success:
                 result.reason = (f"no route certified in space and time: {contact.describe()}"
