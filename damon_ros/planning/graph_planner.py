@@ -375,11 +375,13 @@ class GraphPlanner:
         """`_route_moving`, its timed trajectory then certified in space and time against
         the scene's movers (`space_time.first_contact`): the arm at trajectory time t
         against where each mover is predicted at t, also beyond the swept horizon of the
-        path checks. Where a mover's region meets the trajectory, the route is searched
-        again with that region (at the contact instant, grown) as one more obstacle, up to
-        ``space_time_reroutes`` times; a trajectory still refused is not returned (the
-        caller holds and retries). Margin: λ, or the start margin when something is already
-        closer (as for a first segment). A scene without movers costs nothing here."""
+        path checks. Where a mover's region meets the trajectory, an arm at rest first
+        tries waiting at its start (re-timed, `_delayed`); else the route is searched again
+        with that region (at the contact instant, grown) as one more obstacle, up to
+        ``space_time_reroutes`` times, unless the region covers the start or the goal; a
+        trajectory still refused is not returned (the caller holds and retries). Margin: λ,
+        or the start margin when something is already closer (as for a first segment). A
+        scene without movers costs nothing here."""
         result = self._route_moving(q_start, qd_start, q_goal, scene)
         if not scene.moving:
             return result
