@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -164,3 +166,27 @@ def test_the_relaxed_start_margin_is_only_for_what_is_already_close(planner, fas
     assert query.segment_certified(q0, q1, first=True) == (
         planner.segment_free(q0, q1, (near,), relaxed)
         and planner.segment_free(q0, q1, (far,), full))
+
+
+def test_an_arm_at_rest_waits_for_a_falling_ball_to_pass(planner, fast, monkeypatch):
+    """Re-timed rather than refused: the ball falls through the hand's way three quarters
+    along it; starting later, the arm passes above it (the wait is checked as well). A
+    well-measured ball (small velocity error): with the default growth its region, falling
+    on past the table top, grazes the robot's own base however long the arm waits."""
+    monkeypatch.setattr(planner, "config", replace(planner.config, prediction=Prediction(
+        velocity_sigma_m_s=0.01, velocity_sigma_rel=0.02)))
+    q0, q1 = _long_move()
+    today = planner.plan(q0, q1, Scene((), ()))
+    tr = today.trajectory
+    target, _ = fast.tcp_pose(tr.sample(0.75 * tr.duration)[0])
+    v = np.array([0.0, 0.0, -1.0])
+    ball = Shape("sphere", (0.04,), target - v * (0.75 * tr.duration + AGE), name="falling")
+    assert _true_clearance(fast, tr, ball, v) < 0.0  # on time, the arm meets it
+    result = planner.plan(q0, q1, Scene((ball,), (swept(ball, v, HORIZON),), ((ball, v),),
+                                        AGE))
+    assert result.success, result.reason
+    waited = result.trajectory
+    assert waited.duration > tr.duration + 0.1
+    still = waited.times <= 0.19
+    assert np.allclose(waited.positions[still], q0) and np.allclose(waited.positions[-1], q1)
+    assert _true_clearance(fast, waited, ball, v) > 0.0
