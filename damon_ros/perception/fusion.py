@@ -8,9 +8,16 @@ sphere, cylinder, point-set hull), so the intersection is a convex polytope: the
 of each bound (curved ones by tangent planes, which contain the curve) are intersected and
 the vertices become a point-set obstacle. A cut-off (partial) detection bounds only what it
 shows and would cut the object: it is only used when no view saw the object whole.
+
+Unsynchronised cameras (the tracker node) fuse a new frame with the other cameras' latest
+frames, taken up to a few milliseconds earlier: such an older bound is first grown by how
+far the object can have moved since (``slack``, the maximum obstacle speed times the age),
+so it still contains the object at the new frame's time.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.optimize import linprog
@@ -51,12 +58,16 @@ def _interior(hs: np.ndarray) -> np.ndarray | None:
     return result.x[:3]
 
 
-def intersect(shapes: list[Shape], name: str = "") -> Shape | None:
+def intersect(shapes: list[Shape], name: str = "",
+              slack: Sequence[float] | None = None) -> Shape | None:
     """The convex intersection of several bounds of one object as a point set, or None
-    when they do not overlap."""
-    if len(shapes) == 1:
+    when they do not overlap. ``slack[i]`` (m) grows bound ``i`` first: every one of its
+    half-spaces moves out by it, which contains the bound's Minkowski sum with a ball."""
+    slack = [0.0] * len(shapes) if slack is None else list(slack)
+    if len(shapes) == 1 and slack[0] <= 0.0:
         return shapes[0]
-    hs = np.vstack([halfspaces(s) for s in shapes])
+    hs = np.vstack([halfspaces(s) - np.array([0.0, 0.0, 0.0, g])
+                    for s, g in zip(shapes, slack, strict=True)])
     centre = _interior(hs)
     if centre is None:
         return None
@@ -69,39 +80,55 @@ def intersect(shapes: list[Shape], name: str = "") -> Shape | None:
     return Shape("points", (), mid, points=vertices - mid, name=name or shapes[0].name)
 
 
-def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float) -> list[tuple[Shape, bool]]:
+def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
+         slack: Sequence[float] | None = None, anchored: bool = False
+         ) -> list[tuple[Shape, bool]]:
     """Detections of one colour class from several cameras -> one bound per object.
 
-    ``views[c]`` holds camera ``c``'s ``(shape, partial)`` pairs. Detections of different
-    cameras are one object when their bounds overlap and their centres are within
-    ``gate_m`` (greedy, in camera order); each object's bound is the intersection of its
-    whole views (of its partial ones when it has no whole view). A fused object is partial
-    only when every view of it is.
+    ``views[c]`` holds camera ``c``'s ``(shape, partial)`` pairs; ``slack[c]`` (m, default
+    0) grows camera ``c``'s bounds before they are used (an older frame: see the module
+    text). Detections of different cameras are one object when their bounds overlap and
+    their centres are within ``gate_m`` (greedy, in camera order); each object's bound is
+    the intersection of its whole views (of its partial ones when it has no whole view). A
+    fused object is partial only when every view of it is. ``anchored``: only the objects
+    camera 0 sees are returned (the other views only tighten them; an object seen only in
+    an older frame is reported when its own camera's frame is processed).
     """
-    groups: list[list[tuple[Shape, bool]]] = []
-    for detections in views:
+    slack = [0.0] * len(views) if slack is None else list(slack)
+    groups: list[list[tuple[Shape, bool, float]]] = []
+    for c, (detections, grow) in enumerate(zip(views, slack, strict=True)):
         taken: set[int] = set()
         for shape, partial in detections:
-            best, best_d = None, gate_m
+            best, best_d = None, gate_m + grow
             for g, group in enumerate(groups):
                 if g in taken:
                     continue
-                d = float(np.linalg.norm(group[0][0].position - shape.position))
-                if d <= best_d and intersect([group[0][0], shape]) is not None:
+                first, _, first_grow = group[0]
+                d = float(np.linalg.norm(first.position - shape.position))
+                if d <= best_d and intersect([first, shape],
+                                             slack=[first_grow, grow]) is not None:
                     best, best_d = g, d
             if best is None:
-                groups.append([(shape, partial)])
+                if anchored and c > 0:
+                    continue
+                groups.append([(shape, partial, grow)])
                 taken.add(len(groups) - 1)
             else:
-                groups[best].append((shape, partial))
+                groups[best].append((shape, partial, grow))
                 taken.add(best)
-    fused = []
-    for group in groups:
-        whole = [s for s, p in group if not p]
-        members = whole or [s for s, _ in group]
-        shape = intersect(members) if len(members) > 1 else members[0]
-        if shape is None:  # views that overlap pairwise but not all together: keep one
-            shape = min(members, key=lambda s: s.bounding_radius())
-            # the smallest bound of a whole view still contains the object
-        fused.append((shape, not whole))
-    return fused
+    return [_fused(group) for group in groups]
+
+
+def _fused(group: list[tuple[Shape, bool, float]]) -> tuple[Shape, bool]:
+    """One object's bound from its views: the intersection of the whole ones (or of the
+    partial ones when none is whole), each grown by its slack."""
+    whole = [(s, g) for s, p, g in group if not p]
+    members = whole or [(s, g) for s, _, g in group]
+    shape = intersect([s for s, _ in members], slack=[g for _, g in members])
+    if shape is None:  # views that overlap pairwise but not all together: keep one
+        s, g = min(members, key=lambda m: m[0].bounding_radius() + m[1])
+        # the smallest bound of a whole view still contains the object
+        shape = s if g <= 0.0 else intersect([s], slack=[g])
+        if shape is None:  # qhull failed on the grown bound: its bounding sphere, grown
+            shape = Shape("sphere", (s.bounding_radius() + g,), s.position, name=s.name)
+    return shape, not whole

@@ -164,11 +164,13 @@ class Tracker:
         self._tracks: list[_TrackState] = []
         self._next_id = 0
         self._last_stamp: float | None = None
+        self._views: dict[int, tuple[float, list[Detection]]] = {}  # see `update_camera`
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up, so an old id never means a new thing)."""
         self._tracks = []
         self._last_stamp = None
+        self._views = {}
 
     @property
     def tracks(self) -> list[Track]:
@@ -206,14 +208,49 @@ class Tracker:
         self._check_stamp(stamp_s)
         views = [detect(c, self.config, rgb, depth, self.segmenter)
                  for c, (rgb, depth) in zip(cameras, frames, strict=True)]
-        self.detections = []
+        self.detections = self._fused(views, [0.0] * len(views), anchored=False)
+        return self._track(stamp_s)
+
+    def update_camera(self, view: int, camera: Camera, rgb: np.ndarray, depth: np.ndarray,
+                      stamp_s: float) -> list[Track] | None:
+        """One frame of camera ``view`` among several unsynchronised ones (the tracker node).
+
+        Its detections are fused with each other camera's latest ones that are at most
+        ``fusion_window_s`` older, those grown by ``max_speed_mps`` times their age so that
+        they still contain the object now (:func:`fusion.fuse`, anchored on this frame:
+        an object only another camera sees is tracked from that camera's frames). A frame
+        not newer than the last one tracked (frames of different cameras arrive out of
+        order) is not tracked but kept for fusing later frames: then None is returned.
+        """
+        stamp_s = float(stamp_s)
+        check_images(camera, rgb, depth)
+        last = self._last_stamp
+        late = (last is not None and math.isfinite(stamp_s)
+                and last - self.config.time_jump_s <= stamp_s <= last)
+        if not late:
+            self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
+        found = detect(camera, self.config, rgb, depth, self.segmenter)
+        self._views[view] = (stamp_s, found)
+        if late:
+            return None
+        others = [(s, d) for v, (s, d) in sorted(self._views.items())
+                  if v != view and 0.0 <= stamp_s - s <= self.config.fusion_window_s]
+        slack = [0.0] + [self.config.max_speed_mps * (stamp_s - s) for s, _ in others]
+        self.detections = self._fused([found] + [d for _, d in others], slack, anchored=True)
+        return self._track(stamp_s)
+
+    def _fused(self, views: list[list[Detection]], slack: list[float],
+               anchored: bool) -> list[Detection]:
+        """Per colour class, the detections of several views fused (:func:`fusion.fuse`)."""
+        if len(views) == 1:
+            return list(views[0])
+        out = []
         for color in sorted({d.color for view in views for d in view}):
             per_view = [[(d.shape, d.partial) for d in view if d.color == color]
                         for view in views]
-            for shape, partial in fuse(per_view, self.config.gate_m):
-                self.detections.append(Detection(color, shape, shape.kind == "sphere",
-                                                 partial, 0, 0))
-        return self._track(stamp_s)
+            for shape, partial in fuse(per_view, self.config.gate_m, slack, anchored):
+                out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0))
+        return out
 
     def _track(self, stamp_s: float) -> list[Track]:
         for color in {d.color for d in self.detections} | {t.color for t in self._tracks}:

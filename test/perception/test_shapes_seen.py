@@ -260,3 +260,36 @@ def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
     assert depth_one >= CONFIG.max_thickness_m["box"]  # the prior bounds what is unseen
     assert depth_two < 0.06 + 0.04 < depth_one
     assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
+
+
+def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
+    """Two cameras whose frames are 15 ms apart (the tracker node's case): each frame is
+    fused with the other camera's latest one, grown by max_speed x age, so the bound of a
+    box moving at 0.3 m/s holds it at the newer stamp; the hidden depth still shrinks
+    against one camera's prior, and a frame that arrives late is kept for the next one."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, -0.3, 0.9], "orientation": [0, 0, 0, 1]},
+           "motion": {"type": "waypoints", "waypoints": [[0.0, 0.5, -0.3, 0.9],
+                                                        [2.0, 0.5, 0.3, 0.9]]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    tracker, alone = Tracker(front, CONFIG), Tracker(front, CONFIG)
+    rng = np.random.default_rng(1)
+    depths, alone_depths = [], []
+    for k in range(20):
+        for view, camera, t in ((0, front, 0.3 + k / 30), (1, side, 0.315 + k / 30)):
+            frame = render(camera, scene_at(scenario, t), 0.002, 0.01, rng)
+            tracks = tracker.update_camera(view, camera, *frame, t)
+            (track,) = tracks
+            assert _inside(track.shape, scenario.obstacles[0].parts_at(t)) == 1.0, (k, view)
+            if view == 0:
+                depths.append(np.ptp(shapes.enclosing_vertices(track.shape)[:, 0]))
+                (one,) = alone.update(*frame, t)
+                alone_depths.append(np.ptp(shapes.enclosing_vertices(one.shape)[:, 0]))
+    assert np.median(depths) < 0.06 + 2 * CONFIG.max_speed_mps * 0.015 + 0.04
+    assert np.median(depths) < np.median(alone_depths) - 0.05
+    # a frame older than the last tracked one is not tracked, yet kept for fusion
+    late = render(side, scene_at(scenario, 0.94), 0.002, 0.01, rng)
+    assert tracker.update_camera(1, side, *late, 0.94) is None
+    assert tracker._views[1][0] == 0.94
