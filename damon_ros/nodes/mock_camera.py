@@ -34,7 +34,6 @@ import sys
 import time
 from collections import deque
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import yaml
@@ -45,7 +44,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
 from damon_ros.core.scenario import Scenario, load_scenario
-from damon_ros.perception.camera import Camera, load_camera
+from damon_ros.perception.camera import Camera, camera_file, load_camera
 from damon_ros.ros import topics
 from damon_ros.ros.markers import class_rgba, shape_to_marker
 from damon_ros.ros.node_loop import use_realtime_priority
@@ -69,7 +68,10 @@ PARAMETERS = (
     Param("scenario", "", "scenario file whose obstacles are rendered (required)"),
     Param("fps", 30.0, "frames per second", 0.1, 240.0),
     Param("camera_config", "",
-          "camera file (intrinsics, base_T_camera, mock_render); '' = shipped"),
+          "camera file (intrinsics, base_T_camera, mock_render), a path or a shipped name "
+          "(camera_side.yaml); '' = shipped camera.yaml"),
+    Param("camera_prefix", topics.CAMERA_PREFIX,
+          "topic prefix of this camera (<prefix>/color/image_raw, ...): one per camera"),
     Param("depth_noise_std_m", -1.0,
           "depth noise std (m); < 0: the camera file's mock_render value"),
     Param("dropout", -1.0, "fraction of depth pixels with no return; < 0: the camera file's value"),
@@ -95,7 +97,7 @@ def render_settings(camera_config: str, overrides: dict[str, float]) -> RenderSe
     A real calibration file has no ``mock_render`` section; the shipped settings serve then.
     Overrides with a negative value mean "keep the file's value".
     """
-    path = Path(camera_config) if camera_config else None
+    path = camera_file(camera_config) if camera_config else None
     has_section = path is not None and isinstance(
         data := yaml.safe_load(path.read_text(encoding="utf-8")), dict) and "mock_render" in data
     settings = load_render_settings(path if has_section else None)
@@ -153,10 +155,10 @@ class MockCamera(Node):
         self._render_s: deque[float] = deque([0.5 * self.period], maxlen=30)
         self._frames = 0
         self._overruns = 0
-        self._pub_color = self.create_publisher(Image, topics.COLOR_IMAGE, qos_profile_sensor_data)
-        self._pub_depth = self.create_publisher(Image, topics.DEPTH_IMAGE, qos_profile_sensor_data)
-        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO,
-                                               qos_profile_sensor_data)
+        color, depth, info = topics.camera_topics(p["camera_prefix"])
+        self._pub_color = self.create_publisher(Image, color, qos_profile_sensor_data)
+        self._pub_depth = self.create_publisher(Image, depth, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, info, qos_profile_sensor_data)
         self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
@@ -165,7 +167,8 @@ class MockCamera(Node):
         use_realtime_priority(self, p["realtime_priority"])
         s = self.settings
         self.get_logger().info(
-            f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles), "
+            f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles) on "
+            f"{color}, "
             f"{self.camera.width}x{self.camera.height} at {p['fps']:g} fps, depth noise "
             f"{s.depth_noise_std_m:g} m, dropout {s.dropout:g}, seed {s.seed}, scenario t=0 at "
             f"{self.start_time:.3f} s, time scale {self.time_scale:g}")

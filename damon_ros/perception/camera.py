@@ -138,9 +138,23 @@ def camera_from_dict(data: dict, source: str = "<camera>") -> Camera:
         raise ValueError(f"{source}: camera: {exc}") from exc
 
 
+def camera_file(name: str | os.PathLike | None) -> Path:
+    """The camera file ``name``: a path, or the name of a shipped one (``camera_side.yaml``,
+    found in the installed share folder too); None or "" = ``config/camera.yaml``."""
+    if not name:
+        return config_file("camera.yaml")
+    path = Path(name)
+    if path.is_file() or path.parent != Path("."):
+        return path
+    try:
+        return config_file(str(name))
+    except FileNotFoundError:
+        return path  # read_yaml_section names it: "cannot be read"
+
+
 def load_camera(path: str | os.PathLike | None = None) -> Camera:
-    """The calibrated camera of ``path``, or of the shipped ``config/camera.yaml``."""
-    path = config_file("camera.yaml") if path is None else Path(path)
+    """The calibrated camera of ``path`` (see `camera_file`), or of ``config/camera.yaml``."""
+    path = camera_file(path)
     return camera_from_dict(read_yaml_section(path, "camera"), str(path))
 
 
