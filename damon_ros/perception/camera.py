@@ -158,6 +158,15 @@ def load_camera(path: str | os.PathLike | None = None) -> Camera:
     return camera_from_dict(read_yaml_section(path, "camera"), str(path))
 
 
+def load_cameras(files: str | Sequence[str]) -> list[Camera]:
+    """Several cameras, from a comma-separated list of camera files (see `camera_file`) or
+    a sequence of them: ``"camera.yaml,camera_side.yaml"`` is the front and side pair."""
+    names = [f.strip() for f in files.split(",")] if isinstance(files, str) else list(files)
+    if not names or not all(names):
+        raise ValueError(f"camera list {files!r} must name one or more camera files")
+    return [load_camera(name) for name in names]
+
+
 def to_camera_frame(camera: Camera, points_base: np.ndarray) -> np.ndarray:
     """Points (N, 3) from the base frame into the optical frame."""
     p = np.asarray(points_base, dtype=float).reshape(-1, 3)

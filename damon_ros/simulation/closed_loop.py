@@ -36,6 +36,7 @@ class SimConfig:
     hold_time: float = 0.2  # s the goal must be held (velocities ~0) to count as reached
     settle_speed: float = 0.02  # rad/s below which the arm counts as still
     perception: str = "ideal"  # ideal | camera
+    cameras: tuple[str, ...] = ("camera.yaml",)  # camera files of the camera perception
     seed: int = 0
 
 
@@ -76,20 +77,20 @@ class _Perception:
         self.rng = np.random.default_rng(config.seed)
         self.tracker = None
         if config.perception == "camera":
-            from damon_ros.perception.camera import load_camera
+            from damon_ros.perception.camera import load_cameras
             from damon_ros.perception.tracking import Tracker
             from damon_ros.simulation.renderer import render, scene_at
 
-            self.camera = load_camera()
-            self.tracker = Tracker(self.camera)
+            self.cameras = load_cameras(config.cameras)
+            self.tracker = Tracker(self.cameras[0])
             self._render, self._scene_at = render, scene_at
 
     def observe(self, t: float) -> list:
         seen_at = max(0.0, t - self.config.perception_latency)
         if self.tracker is not None:
-            rgb, depth = self._render(self.camera, self._scene_at(self.scenario, seen_at),
-                                      rng=self.rng)
-            tracks = self.tracker.update(rgb, depth, seen_at)
+            scene = self._scene_at(self.scenario, seen_at)  # synchronised cameras
+            frames = [self._render(camera, scene, rng=self.rng) for camera in self.cameras]
+            tracks = self.tracker.update_views(self.cameras, frames, seen_at)
             return [(tr.shape, tr.velocity) for tr in tracks]
         out = []
         for obstacle in self.scenario.obstacles:  # a compound: each exact part
