@@ -61,7 +61,7 @@ from damon_ros.ros.images import (
     decode_color,
     decode_depth,
 )
-from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker
+from damon_ros.ros.markers import SEEN_SUFFIX, class_rgba, delete_marker, shape_to_marker
 from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, declare_all
@@ -132,6 +132,8 @@ def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], fr
                      ) -> tuple[MarkerArray, set[tuple[str, int]]]:
     """One ADD marker per (published) track, a DELETE for each one no longer published.
 
+    A track's visible surface goes beside it as ``(color + SEEN_SUFFIX, id)`` (see
+    :mod:`damon_ros.ros.markers`): what the cameras saw, the rest being its hidden extent.
     Returns the array and the keys it shows, which are ``previous`` for the next frame.
     """
     out = MarkerArray()
@@ -142,6 +144,11 @@ def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], fr
         out.markers.append(shape_to_marker(track.shape, track.color, track.id, frame_id, stamp,
                                            lifetime_s, class_rgba(track.color)))
         shown.add((track.color, track.id))
+        if track.seen is not None:
+            out.markers.append(shape_to_marker(track.seen, track.color + SEEN_SUFFIX, track.id,
+                                               frame_id, stamp, lifetime_s,
+                                               class_rgba(track.color, 1.0)))
+            shown.add((track.color + SEEN_SUFFIX, track.id))
     for ns, id in sorted(previous - shown):
         out.markers.append(delete_marker(ns, id, frame_id, stamp))
     return out, shown

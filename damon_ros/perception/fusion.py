@@ -82,7 +82,7 @@ def intersect(shapes: list[Shape], name: str = "",
 
 def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
          slack: Sequence[float] | None = None, anchored: bool = False
-         ) -> list[tuple[Shape, bool]]:
+         ) -> list[tuple[Shape, bool, list[tuple[int, int]]]]:
     """Detections of one colour class from several cameras -> one bound per object.
 
     ``views[c]`` holds camera ``c``'s ``(shape, partial)`` pairs; ``slack[c]`` (m, default
@@ -92,13 +92,15 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     the intersection of its whole views (of its partial ones when it has no whole view). A
     fused object is partial only when every view of it is. ``anchored``: only the objects
     camera 0 sees are returned (the other views only tighten them; an object seen only in
-    an older frame is reported when its own camera's frame is processed).
+    an older frame is reported when its own camera's frame is processed). Each object
+    comes as ``(bound, partial, members)``, ``members`` its ``(camera, detection)`` indices.
     """
     slack = [0.0] * len(views) if slack is None else list(slack)
     groups: list[list[tuple[Shape, bool, float]]] = []
+    members: list[list[tuple[int, int]]] = []
     for c, (detections, grow) in enumerate(zip(views, slack, strict=True)):
         taken: set[int] = set()
-        for shape, partial in detections:
+        for i, (shape, partial) in enumerate(detections):
             best, best_d = None, gate_m + grow
             for g, group in enumerate(groups):
                 if g in taken:
@@ -112,11 +114,13 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                 if anchored and c > 0:
                     continue
                 groups.append([(shape, partial, grow)])
+                members.append([(c, i)])
                 taken.add(len(groups) - 1)
             else:
                 groups[best].append((shape, partial, grow))
+                members[best].append((c, i))
                 taken.add(best)
-    return [_fused(group) for group in groups]
+    return [(*_fused(group), m) for group, m in zip(groups, members, strict=True)]
 
 
 def _fused(group: list[tuple[Shape, bool, float]]) -> tuple[Shape, bool]:

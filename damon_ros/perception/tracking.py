@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from damon_ros.core.shapes import Shape
-from damon_ros.perception.camera import Camera
+from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
@@ -68,6 +68,8 @@ class Detection(NamedTuple):
 
     ``partial``: the blob touches the image border or a nearer surface borders it, so part of
     the obstacle may be hidden and the bound is only a bound of what is visible.
+    ``seen``: the visible surface alone (base frame; :func:`seen_part`), what the bound holds
+    for certain; the rest of the bound is the hidden extent that no camera saw.
     """
 
     color: str
@@ -76,6 +78,31 @@ class Detection(NamedTuple):
     partial: bool
     points: int
     area_px: int
+    seen: Shape | None = None
+
+
+_EXTREMES = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                      if (x, y, z) != (0, 0, 0)], dtype=float)
+_EXTREMES /= np.linalg.norm(_EXTREMES, axis=1, keepdims=True)
+
+
+def seen_part(points_base: np.ndarray, name: str = "") -> Shape:
+    """The visible surface as a point set: the points extreme along 26 directions (its hull
+    lies inside the hull of all the points, and is close to it; a few dozen points keep the
+    marker small). It tells a refusal caused by what was seen from one caused by the hidden
+    extent (:mod:`damon_ros.perception.unseen`); it bounds nothing."""
+    points = np.asarray(points_base, dtype=float).reshape(-1, 3)
+    chosen = points[np.unique(np.argmax(points @ _EXTREMES.T, axis=0))]
+    mid = 0.5 * (chosen.min(axis=0) + chosen.max(axis=0))
+    return Shape("points", (), mid, points=chosen - mid, name=name)
+
+
+def _union(parts: Sequence[Shape | None], name: str) -> Shape | None:
+    """The seen parts of several views of one object, as one point set."""
+    known = [p for p in parts if p is not None]
+    if not known:
+        return None
+    return seen_part(np.vstack([p.position + p.points for p in known]), name)
 
 
 def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.ndarray,
@@ -91,7 +118,8 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         estimate = estimate_shape(camera, points, config, name=blob.color,
                                   partial=blob.partial)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
-                               len(points), blob.area_px))
+                               len(points), blob.area_px,
+                               seen_part(to_base_frame(camera, points), blob.color)))
     return found
 
 
@@ -104,7 +132,8 @@ class Track:
 
     ``shape`` is the last observed bounding shape (not extrapolated: a consumer that wants a
     prediction uses ``velocity`` and ``last_seen``); ``age`` is seconds since first seen;
-    ``hits`` counts the frames it was seen in; ``partial`` is the last detection's flag.
+    ``hits`` counts the frames it was seen in; ``partial`` is the last detection's flag;
+    ``seen`` the last detection's visible surface (`Detection`).
     """
 
     id: int
@@ -115,6 +144,7 @@ class Track:
     age: float
     hits: int
     partial: bool = False
+    seen: Shape | None = None
 
 
 @dataclass(eq=False)
@@ -129,6 +159,7 @@ class _TrackState:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     hits: int = 0
     partial: bool = False
+    seen: Shape | None = None
 
     def predict(self, stamp: float) -> np.ndarray:
         return self.shape.position + self.velocity * (stamp - self.last_seen)
@@ -142,6 +173,7 @@ class _TrackState:
         shape = detection.shape
         self.shape = shape
         self.partial = detection.partial
+        self.seen = detection.seen
         self.last_seen = stamp
         self.hits += 1
         velocity = self.motion.add(stamp, shape.position)
@@ -150,7 +182,7 @@ class _TrackState:
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,
-                     self.last_seen - self.first_seen, self.hits, self.partial)
+                     self.last_seen - self.first_seen, self.hits, self.partial, self.seen)
 
 
 class Tracker:
@@ -246,10 +278,12 @@ class Tracker:
             return list(views[0])
         out = []
         for color in sorted({d.color for view in views for d in view}):
-            per_view = [[(d.shape, d.partial) for d in view if d.color == color]
-                        for view in views]
-            for shape, partial in fuse(per_view, self.config.gate_m, slack, anchored):
-                out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0))
+            mine = [[d for d in view if d.color == color] for view in views]
+            per_view = [[(d.shape, d.partial) for d in view] for view in mine]
+            for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored):
+                seen = _union([mine[v][i].seen for v, i in members], color)
+                out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0,
+                                     seen))
         return out
 
     def _track(self, stamp_s: float) -> list[Track]:

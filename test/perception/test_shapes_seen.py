@@ -255,6 +255,11 @@ def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
     assert len(one) == 1 and len(two) == 1
     for track in (one[0], two[0]):
         assert _inside(track.shape, [truth]) == 1.0
+        # the visible surface lies on the truth and inside the bound: the rest is hidden
+        seen = track.seen.position + track.seen.points
+        assert shapes.contains(track.shape, seen, 0.01).all()  # depth noise: 2 mm std
+        assert shapes.contains(truth, seen, 0.01).all()
+    assert len(two[0].seen.points) > len(one[0].seen.points)  # both views' surfaces
     depth_one = np.ptp(shapes.enclosing_vertices(one[0].shape)[:, 0])
     depth_two = np.ptp(shapes.enclosing_vertices(two[0].shape)[:, 0])
     assert depth_one >= CONFIG.max_thickness_m["box"]  # the prior bounds what is unseen
