@@ -89,6 +89,26 @@ def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
 
 
+def _percentiles_1_99(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.percentile(values, [1, 99], axis=0)`` (linear interpolation) by one partition:
+    the same order statistics and interpolation, without percentile's generic overhead
+    (~0.1 ms a call on a box's points)."""
+    n = len(values)
+    lows, highs, weights = [], [], []
+    for q in (0.01, 0.99):
+        index = q * (n - 1)
+        low = int(math.floor(index))
+        lows.append(low)
+        highs.append(min(low + 1, n - 1))
+        weights.append(index - low)
+    part = np.partition(values, sorted(set(lows + highs)), axis=0)
+    out = []
+    for low, high, w in zip(lows, highs, weights, strict=True):
+        a, b = part[low], part[high]
+        out.append(a + (b - a) * w if w < 0.5 else b - (b - a) * (1.0 - w))
+    return out[0], out[1]
+
+
 def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
     """Distance between neighbouring samples on the image plane at ``depth``."""
     return config.downsample * depth / camera.K[0, 0]
@@ -109,7 +129,7 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
         local = points @ axes
         # Depth noise spreads a face's points over several sigma; the face test is against
         # robust planes (percentiles), the bound against the extremes.
-        robust_low, robust_high = np.percentile(local, [1.0, 99.0], axis=0)
+        robust_low, robust_high = _percentiles_1_99(local)
         near_low = np.abs(local - robust_low) <= tol
         near_high = np.abs(local - robust_high) <= tol
         if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all

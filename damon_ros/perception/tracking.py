@@ -106,9 +106,11 @@ def _union(parts: Sequence[Shape | None], name: str) -> Shape | None:
 
 
 def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.ndarray,
-           segmenter: Segmenter | None = None) -> list[Detection]:
-    """All obstacles of one frame (no tracking): segment, deproject, bound."""
-    check_images(camera, rgb, depth)
+           segmenter: Segmenter | None = None, checked: bool = False) -> list[Detection]:
+    """All obstacles of one frame (no tracking): segment, deproject, bound. ``checked``:
+    the caller ran `check_images` already (its all-zero test reads the whole depth image)."""
+    if not checked:
+        check_images(camera, rgb, depth)
     segmenter = Segmenter(config) if segmenter is None else segmenter
     found = []
     for blob in segmenter.blobs(rgb, depth):
@@ -225,7 +227,7 @@ class Tracker:
         stamp_s = float(stamp_s)
         check_images(self.camera, rgb, depth)
         self._check_stamp(stamp_s)
-        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter)
+        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter, True)
         return self._track(stamp_s)
 
     def update_views(self, cameras: Sequence[Camera], frames: Sequence[tuple[np.ndarray,
@@ -238,7 +240,7 @@ class Tracker:
         for camera, (rgb, depth) in zip(cameras, frames, strict=True):
             check_images(camera, rgb, depth)
         self._check_stamp(stamp_s)
-        views = [detect(c, self.config, rgb, depth, self.segmenter)
+        views = [detect(c, self.config, rgb, depth, self.segmenter, True)
                  for c, (rgb, depth) in zip(cameras, frames, strict=True)]
         self.detections = self._fused(views, [0.0] * len(views), anchored=False)
         return self._track(stamp_s)
@@ -261,7 +263,7 @@ class Tracker:
                 and last - self.config.time_jump_s <= stamp_s <= last)
         if not late:
             self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
-        found = detect(camera, self.config, rgb, depth, self.segmenter)
+        found = detect(camera, self.config, rgb, depth, self.segmenter, True)
         self._views[view] = (stamp_s, found)
         if late:
             return None
