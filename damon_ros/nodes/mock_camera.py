@@ -30,6 +30,7 @@ default) must select best effort to receive them.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from collections import deque
@@ -86,6 +87,9 @@ PARAMETERS = (
                                   "only, for runs without perception)"),
     Param("truth_lifetime_frames", 3.0, "lifetime of a ground-truth marker, in frames",
           0.0, 1000.0),
+    Param("sync_stamps", False, "hardware-synchronised cameras (RealSense inter_cam_sync_mode): "
+          "frames at the multiples of 1/fps in ROS time, so that cameras with the same fps "
+          "take theirs at the same instants and the tracker fuses them with no motion slack"),
     Param("realtime_priority", 5,
           "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
 )
@@ -163,6 +167,10 @@ class MockCamera(Node):
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
         accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
+        self.sync_stamps = p["sync_stamps"]
+        if self.sync_stamps:  # tick half a period before each instant of the shared grid
+            now = clock_seconds(self)
+            time.sleep((0.5 * self.period - now) % self.period)
         self.create_timer(self.period, self._frame)
         use_realtime_priority(self, p["realtime_priority"])
         s = self.settings
@@ -186,6 +194,8 @@ class MockCamera(Node):
         tick = clock_seconds(self)
         predicted = float(np.percentile(self._render_s, 90)) + RENDER_MARGIN_S
         stamp_s = tick + min(predicted, self.period)
+        if self.sync_stamps:  # the next instant of the grid, waited for below
+            stamp_s = math.ceil(stamp_s / self.period - 1e-9) * self.period
         scene = scene_at(self.scenario, self.scenario_time(stamp_s))
         if self.publish_images:
             rgb, depth = render(self.camera, scene, **render_settings_kwargs(self.settings,

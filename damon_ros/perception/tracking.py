@@ -127,6 +127,10 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
 
 # --- tracking --------------------------------------------------------------------------------
 
+SAME_INSTANT_S = 1e-3
+"""Frames of different cameras this close in time are of one instant (hardware-synchronised
+cameras stamp alike to well within it): fused with no motion slack."""
+
 
 @dataclass(frozen=True, eq=False)
 class Track:
@@ -199,12 +203,14 @@ class Tracker:
         self._next_id = 0
         self._last_stamp: float | None = None
         self._views: dict[int, tuple[float, list[Detection]]] = {}  # see `update_camera`
+        self._at_last: set[int] = set()  # the views of the instant tracked last
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up, so an old id never means a new thing)."""
         self._tracks = []
         self._last_stamp = None
         self._views = {}
+        self._at_last = set()
 
     @property
     def tracks(self) -> list[Track]:
@@ -247,31 +253,38 @@ class Tracker:
 
     def update_camera(self, view: int, camera: Camera, rgb: np.ndarray, depth: np.ndarray,
                       stamp_s: float) -> list[Track] | None:
-        """One frame of camera ``view`` among several unsynchronised ones (the tracker node).
+        """One frame of camera ``view`` among several (the tracker node, frames as they come).
 
         Its detections are fused with each other camera's latest ones that are at most
         ``fusion_window_s`` older, those grown by ``max_speed_mps`` times their age so that
         they still contain the object now (:func:`fusion.fuse`, anchored on this frame:
-        an object only another camera sees is tracked from that camera's frames). A frame
-        not newer than the last one tracked (frames of different cameras arrive out of
-        order) is not tracked but kept for fusing later frames: then None is returned.
+        an object only another camera sees is tracked from that camera's frames). Cameras
+        synchronised in hardware stamp their frames alike: a frame of the instant just
+        tracked (within `SAME_INSTANT_S`) that was not part of it is fused with it and
+        tracked again at that instant, with no motion slack. Any other frame not newer than
+        the last one tracked (frames of different cameras arrive out of order) is not
+        tracked but kept for fusing later frames: then None is returned.
         """
         stamp_s = float(stamp_s)
         check_images(camera, rgb, depth)
         last = self._last_stamp
-        late = (last is not None and math.isfinite(stamp_s)
-                and last - self.config.time_jump_s <= stamp_s <= last)
-        if not late:
+        older = (last is not None and math.isfinite(stamp_s)
+                 and last - self.config.time_jump_s <= stamp_s <= last)
+        same_instant = older and stamp_s >= last - SAME_INSTANT_S and view not in self._at_last
+        if not older:
             self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
         found = detect(camera, self.config, rgb, depth, self.segmenter, True)
         self._views[view] = (stamp_s, found)
-        if late:
+        if older and not same_instant:
             return None
+        now = last if same_instant else stamp_s
         others = [(s, d) for v, (s, d) in sorted(self._views.items())
-                  if v != view and 0.0 <= stamp_s - s <= self.config.fusion_window_s]
-        slack = [0.0] + [self.config.max_speed_mps * (stamp_s - s) for s, _ in others]
+                  if v != view and 0.0 <= now - s <= self.config.fusion_window_s]
+        slack = [self.config.max_speed_mps * (now - s) for s in [stamp_s] + [s for s, _ in others]]
         self.detections = self._fused([found] + [d for _, d in others], slack, anchored=True)
-        return self._track(stamp_s)
+        self._at_last = {v for v, (s, _) in self._views.items()
+                         if now - SAME_INSTANT_S <= s <= now}
+        return self._track(now)
 
     def _fused(self, views: list[list[Detection]], slack: list[float],
                anchored: bool) -> list[Detection]:

@@ -298,3 +298,29 @@ def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
     late = render(side, scene_at(scenario, 0.94), 0.002, 0.01, rng)
     assert tracker.update_camera(1, side, *late, 0.94) is None
     assert tracker._views[1][0] == 0.94
+
+
+def test_synchronised_cameras_arriving_one_by_one_fuse_as_one_instant():
+    """Hardware-synchronised cameras stamp their frames alike: the second frame of an
+    instant is fused with the first with no motion slack and the instant tracked again,
+    as tight as the synchronous `update_views`; a third, older frame is only kept."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.9], "orientation": [0, 0, 0, 1]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    rng = np.random.default_rng(2)
+    tracker, together = Tracker(front, CONFIG), Tracker(front, CONFIG)
+    for t in (0.0, 1 / 30):
+        frames = [render(c, scene_at(scenario, t), 0.002, 0.01, rng) for c in (front, side)]
+        (first,) = tracker.update_camera(0, front, *frames[0], t)
+        (second,) = tracker.update_camera(1, side, *frames[1], t)
+        (synced,) = together.update_views([front, side], frames, t)
+        assert second.id == first.id and second.last_seen == t
+        for track in (first, second):
+            assert _inside(track.shape, [truth]) == 1.0
+        depth = np.ptp(shapes.enclosing_vertices(second.shape)[:, 0])
+        assert depth == pytest.approx(np.ptp(shapes.enclosing_vertices(synced.shape)[:, 0]))
+        assert depth < 0.06 + 0.04
+    assert tracker.update_camera(1, side, *frames[1], t) is None  # that instant has it
