@@ -28,6 +28,8 @@ from damon_ros.core.shapes import Shape, enclosing_vertices
 _DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
                         if (x, y, z) != (0, 0, 0)], dtype=float)
 _DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+MIN_DEPTH_M = 1e-4
+"""Bounds whose intersection holds no ball of this radius do not overlap (other objects)."""
 
 
 def halfspaces(shape: Shape) -> np.ndarray:
@@ -45,15 +47,26 @@ def halfspaces(shape: Shape) -> np.ndarray:
     return hull.equations
 
 
-def _interior(hs: np.ndarray) -> np.ndarray | None:
-    """The Chebyshev centre of the half-space intersection, or None when it is (nearly)
-    empty: then the bounds were not of one object."""
+def _interior(hs: np.ndarray, guesses: Sequence[np.ndarray] = ()) -> np.ndarray | None:
+    """A point at least `MIN_DEPTH_M` inside every half-space, or None when there is none
+    (then the bounds were not of one object).
+
+    The guesses (the bounds' centres and their midpoint: bounds of one object overlap
+    around it) are tried first; only when none is that deep inside is the Chebyshev centre
+    solved for (a linear program, ~1.7 ms against ~10 us): the answer, a point or None, is
+    the linear program's either way, since a guess that deep inside proves one exists."""
     norms = np.linalg.norm(hs[:, :3], axis=1)
+    if len(guesses):
+        points = np.asarray(guesses, dtype=float)
+        depth = -(points @ hs[:, :3].T + hs[:, 3]) / norms  # distance inside each plane
+        best = int(np.argmax(depth.min(axis=1)))
+        if depth[best].min() >= MIN_DEPTH_M:
+            return points[best]
     c = np.array([0.0, 0.0, 0.0, -1.0])  # maximise the radius of the inscribed ball
     A = np.column_stack([hs[:, :3], norms])
     result = linprog(c, A_ub=A, b_ub=-hs[:, 3], bounds=[(None, None)] * 3 + [(0, None)],
                      method="highs")
-    if not result.success or result.x[3] < 1e-4:
+    if not result.success or result.x[3] < MIN_DEPTH_M:
         return None
     return result.x[:3]
 
@@ -68,7 +81,8 @@ def intersect(shapes: list[Shape], name: str = "",
         return shapes[0]
     hs = np.vstack([halfspaces(s) - np.array([0.0, 0.0, 0.0, g])
                     for s, g in zip(shapes, slack, strict=True)])
-    centre = _interior(hs)
+    centres = [s.position for s in shapes]
+    centre = _interior(hs, [*centres, np.mean(centres, axis=0)])
     if centre is None:
         return None
     try:
@@ -98,6 +112,7 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     slack = [0.0] * len(views) if slack is None else list(slack)
     groups: list[list[tuple[Shape, bool, float]]] = []
     members: list[list[tuple[int, int]]] = []
+    pairs: dict[tuple[int, int, int], Shape] = {}  # (group, camera, index): its first & it
     for c, (detections, grow) in enumerate(zip(views, slack, strict=True)):
         taken: set[int] = set()
         for i, (shape, partial) in enumerate(detections):
@@ -107,9 +122,12 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                     continue
                 first, _, first_grow = group[0]
                 d = float(np.linalg.norm(first.position - shape.position))
-                if d <= best_d and intersect([first, shape],
-                                             slack=[first_grow, grow]) is not None:
+                if d > best_d:
+                    continue
+                pair = intersect([first, shape], slack=[first_grow, grow])
+                if pair is not None:
                     best, best_d = g, d
+                    pairs[(g, c, i)] = pair
             if best is None:
                 if anchored and c > 0:
                     continue
@@ -120,15 +138,23 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                 groups[best].append((shape, partial, grow))
                 members[best].append((c, i))
                 taken.add(best)
-    return [(*_fused(group), m) for group, m in zip(groups, members, strict=True)]
+    out = []
+    for g, (group, m) in enumerate(zip(groups, members, strict=True)):
+        # two views of the same status: their intersection was found while grouping
+        pair = pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1] else None
+        out.append((*_fused(group, pair), m))
+    return out
 
 
-def _fused(group: list[tuple[Shape, bool, float]]) -> tuple[Shape, bool]:
+def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None
+           ) -> tuple[Shape, bool]:
     """One object's bound from its views: the intersection of the whole ones (or of the
-    partial ones when none is whole), each grown by its slack."""
+    partial ones when none is whole), each grown by its slack (``pair``: that intersection
+    of a group of two, already known)."""
     whole = [(s, g) for s, p, g in group if not p]
     members = whole or [(s, g) for s, _, g in group]
-    shape = intersect([s for s, _ in members], slack=[g for _, g in members])
+    shape = pair if pair is not None else intersect([s for s, _ in members],
+                                                    slack=[g for _, g in members])
     if shape is None:  # views that overlap pairwise but not all together: keep one
         s, g = min(members, key=lambda m: m[0].bounding_radius() + m[1])
         # the smallest bound of a whole view still contains the object
