@@ -66,7 +66,7 @@ def measure(scenarios, seconds: float, fps: float, seed: int,
                 if not same:
                     rows.append({"kind": _kind(obstacle), "moving": _moving(obstacle, t),
                                  "seen": False, "time_ms": 1e3 * elapsed,
-                                 "cams": len(views)})
+                                 "cams": len(views), "set": cameras})
                     continue
                 track = min(same, key=lambda tr: np.linalg.norm(tr.shape.position - centre))
                 samples = np.vstack([shapes.surface_samples(p, 0.008) for p in parts])
@@ -81,7 +81,7 @@ def measure(scenarios, seconds: float, fps: float, seed: int,
                     "velocity_mps": float(np.linalg.norm(track.velocity
                                                          - obstacle.velocity_at(t))),
                     "estimate": track.shape.kind, "time_ms": 1e3 * elapsed,
-                    "cams": len(views)})
+                    "cams": len(views), "set": cameras})
     return rows
 
 
@@ -103,12 +103,15 @@ def _moving(obstacle, t: float) -> bool:
 def table(rows: list[dict]) -> str:
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in rows:
-        groups[(r["cams"], r["kind"], "moving" if r["moving"] else "static")].append(r)
-    header = (f"{'kind':<9} {'motion':<7} {'cams':>4} {'frames':>6} {'seen':>6} {'partial':>7} "
+        groups[(r["set"], r["kind"], "moving" if r["moving"] else "static")].append(r)
+    header = (f"{'kind':<9} {'motion':<7} {'cams':>5} {'frames':>6} {'seen':>6} {'partial':>7} "
               f"{'contained':>9} {'excess p50':>10} {'centre p50 mm':>13} {'centre p95 mm':>13} "
               f"{'vel p50 m/s':>11} {'estimates':<22}")
     lines = [header, "-" * len(header)]
-    for (cameras, kind, motion), rs in sorted(groups.items()):
+    sets = list(dict.fromkeys(r["set"] for r in rows))  # in the order given
+    for (camera_set, kind, motion), rs in sorted(groups.items(),
+                                                 key=lambda kv: (sets.index(kv[0][0]), kv[0][1:])):
+        cameras = f"{sets.index(camera_set) + 1}:{rs[0]['cams']}"
         seen = [r for r in rs if r["seen"]]
         full = [r for r in seen if not r["partial"]]
         kinds = defaultdict(int)
@@ -121,17 +124,17 @@ def table(rows: list[dict]) -> str:
 
         contained = np.mean([r["contained"] for r in full]) if full else float("nan")
         lines.append(
-            f"{kind:<9} {motion:<7} {cameras:>4} {len(rs):>6} {len(seen):>6} "
+            f"{kind:<9} {motion:<7} {cameras:>5} {len(rs):>6} {len(seen):>6} "
             f"{len(seen) - len(full):>7} {100 * contained:>8.2f}% {100 * p('excess', 50):>9.0f}% "
             f"{p('centre_m', 50, 1e3):>13.1f} {p('centre_m', 95, 1e3):>13.1f} "
             f"{p('velocity_mps', 50):>11.3f} "
             f"{','.join(f'{k}:{n}' for k, n in sorted(kinds.items())):<22}")
     lines.append("")
-    for cameras in sorted({r["cams"] for r in rows}):
-        times = [r["time_ms"] for r in rows if r["cams"] == cameras]
-        lines.append(f"tracker CPU time per 640x480 frame per camera ({cameras} camera(s), all "
-                     f"obstacles, one process): p50 {np.percentile(times, 50):.2f} ms, p95 "
-                     f"{np.percentile(times, 95):.2f} ms")
+    for i, camera_set in enumerate(sets, start=1):
+        times = [r["time_ms"] for r in rows if r["set"] == camera_set]
+        lines.append(f"set {i} ({camera_set}): tracker CPU time per 640x480 frame per camera "
+                     f"(all obstacles, one process): p50 {np.percentile(times, 50):.2f} ms, "
+                     f"p95 {np.percentile(times, 95):.2f} ms")
     return "\n".join(lines)
 
 

@@ -94,7 +94,7 @@ def test_bench_tracker_compares_camera_sets_and_refuses_a_bad_camera_list(tmp_pa
                           "--cameras", "camera.yaml", "camera.yaml,camera_side.yaml"]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()
             if line.startswith("box ")]
-    assert [r[2] for r in rows] == ["1", "2"]  # one row per camera set
+    assert [r[2] for r in rows] == ["1:1", "2:2"]  # set number: cameras, one row per set
     assert all(r[6] == "100.00%" for r in rows)  # the estimate contains the box
     assert int(rows[1][7].rstrip("%")) < int(rows[0][7].rstrip("%"))  # less volume excess
     assert bench_tracker(["--scenarios", scenario, "--cameras", "camera.yaml,nowhere.yaml"]) == 2
