@@ -23,11 +23,17 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
-from damon_ros.core.shapes import Shape, enclosing_vertices
+from damon_ros.core.shapes import Shape, enclosing_vertices, volume
 
 _DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
                         if (x, y, z) != (0, 0, 0)], dtype=float)
 _DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+MARGIN_M = 0.005
+"""Added to each half-space of a bound that another camera's points showed too short:
+such a bound rests on a prior the object breaks a little (a pole seen nearly end-on is
+deeper than ``max_thickness_m``), and it cuts the object where no camera saw, too. On the
+G family (front + side camera) fused poles were contained in 81 % of frames without it,
+95 % with 2 mm, 96 % with 5 mm (the front camera alone: 97.6 %)."""
 MIN_DEPTH_M = 1e-4
 """Bounds whose intersection holds no ball of this radius do not overlap (other objects)."""
 
@@ -71,16 +77,23 @@ def _interior(hs: np.ndarray, guesses: Sequence[np.ndarray] = ()) -> np.ndarray 
     return result.x[:3]
 
 
-def intersect(shapes: list[Shape], name: str = "",
-              slack: Sequence[float] | None = None) -> Shape | None:
+def _moved_out(shape: Shape, grow) -> np.ndarray:
+    """`halfspaces` of ``shape``, each moved out by ``grow`` (m; one value or one per row)."""
+    hs = halfspaces(shape)
+    hs[:, 3] -= grow
+    return hs
+
+
+def intersect(shapes: list[Shape], name: str = "", slack: Sequence | None = None
+              ) -> Shape | None:
     """The convex intersection of several bounds of one object as a point set, or None
     when they do not overlap. ``slack[i]`` (m) grows bound ``i`` first: every one of its
-    half-spaces moves out by it, which contains the bound's Minkowski sum with a ball."""
+    half-spaces moves out by it (a value, which contains the bound's Minkowski sum with a
+    ball, or one value per half-space of `halfspaces`)."""
     slack = [0.0] * len(shapes) if slack is None else list(slack)
-    if len(shapes) == 1 and slack[0] <= 0.0:
+    if len(shapes) == 1 and np.max(slack[0]) <= 0.0:
         return shapes[0]
-    hs = np.vstack([halfspaces(s) - np.array([0.0, 0.0, 0.0, g])
-                    for s, g in zip(shapes, slack, strict=True)])
+    hs = np.vstack([_moved_out(s, g) for s, g in zip(shapes, slack, strict=True)])
     centres = [s.position for s in shapes]
     centre = _interior(hs, [*centres, np.mean(centres, axis=0)])
     if centre is None:
@@ -95,7 +108,8 @@ def intersect(shapes: list[Shape], name: str = "",
 
 
 def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
-         slack: Sequence[float] | None = None, anchored: bool = False
+         slack: Sequence[float] | None = None, anchored: bool = False,
+         seen: list[list[np.ndarray | None]] | None = None, tolerance_m: float = 0.008
          ) -> list[tuple[Shape, bool, list[tuple[int, int]]]]:
     """Detections of one colour class from several cameras -> one bound per object.
 
@@ -108,8 +122,16 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     camera 0 sees are returned (the other views only tighten them; an object seen only in
     an older frame is reported when its own camera's frame is processed). Each object
     comes as ``(bound, partial, members)``, ``members`` its ``(camera, detection)`` indices.
+
+    ``seen[c][i]``: the points camera ``c`` saw of detection ``i`` (N x 3, optional). A bound must
+    hold what the other cameras saw: one that leaves a seen point out by more than
+    ``tolerance_m`` rests on a prior the object breaks (a pole seen end-on is deeper than
+    ``max_thickness_m``) and is left out of the intersection; one that leaves it out by
+    less (depth noise) is grown by that much. Without this check such a bound cut the
+    object that another camera saw whole.
     """
     slack = [0.0] * len(views) if slack is None else list(slack)
+    seen = [[None] * len(v) for v in views] if seen is None else seen
     groups: list[list[tuple[Shape, bool, float]]] = []
     members: list[list[tuple[int, int]]] = []
     pairs: dict[tuple[int, int, int], Shape] = {}  # (group, camera, index): its first & it
@@ -140,10 +162,54 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                 taken.add(best)
     out = []
     for g, (group, m) in enumerate(zip(groups, members, strict=True)):
+        surfaces = [seen[c][i] for c, i in m]
+        checked = _consistent(group, surfaces, tolerance_m)
         # two views of the same status: their intersection was found while grouping
-        pair = pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1] else None
-        out.append((*_fused(group, pair), m))
+        unchanged = len(checked) == 2 and all(
+            np.ndim(c[2]) == 0 and c[2] == x[2] for c, x in zip(checked, group, strict=False))
+        pair = (pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1]
+                and unchanged else None)
+        out.append((*_fused(checked, pair), m))
     return out
+
+
+def _grown(shape: Shape, grow) -> Shape:
+    """A sphere, box or cylinder grown as `_moved_out` grows its half-spaces, as the same
+    kind of shape: a box face by face, the others by the largest value."""
+    grow = np.maximum(np.broadcast_to(np.asarray(grow, dtype=float),
+                                      (len(halfspaces(shape)),)), 0.0)
+    size = np.asarray(shape.size, dtype=float)
+    position = np.asarray(shape.position, dtype=float)
+    if shape.kind == "box":  # rows: +x, +y, +z, -x, -y, -z faces (`halfspaces`)
+        high, low = grow[:3], grow[3:6]
+        size = size + high + low
+        position = position + shape.rotation() @ (0.5 * (high - low))
+    elif shape.kind == "cylinder":
+        size = size + np.array([grow.max(), 2.0 * grow.max()])
+    else:
+        size = size + grow.max()
+    return Shape(shape.kind, tuple(size), position, shape.orientation, name=shape.name)
+
+
+def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarray | None],
+                tolerance_m: float) -> list[tuple[Shape, bool, float]]:
+    """The group's views whose bounds hold what the others saw (`fuse`), each grown by the
+    little it missed; a view whose bound misses more is left out (never all of them)."""
+    if len(group) < 2 or all(s is None for s in surfaces):
+        return group
+    kept = []
+    for k, (shape, partial, grow) in enumerate(group):
+        others = [s for j, s in enumerate(surfaces) if j != k and s is not None]
+        if not others:
+            kept.append((shape, partial, grow))
+            continue
+        hs = halfspaces(shape)
+        excess = np.max(np.vstack(others) @ hs[:, :3].T + hs[:, 3], axis=0) - grow
+        if excess.max() <= 0.0:
+            kept.append((shape, partial, grow))
+        elif excess.max() <= tolerance_m:  # only the planes that missed move out
+            kept.append((shape, partial, grow + np.where(excess > 0.0, excess + MARGIN_M, 0.0)))
+    return kept or group
 
 
 def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None
@@ -156,9 +222,15 @@ def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None
     shape = pair if pair is not None else intersect([s for s, _ in members],
                                                     slack=[g for _, g in members])
     if shape is None:  # views that overlap pairwise but not all together: keep one
-        s, g = min(members, key=lambda m: m[0].bounding_radius() + m[1])
+        s, g = min(members, key=lambda m: m[0].bounding_radius() + np.max(m[1]))
         # the smallest bound of a whole view still contains the object
-        shape = s if g <= 0.0 else intersect([s], slack=[g])
+        shape = s if np.max(g) <= 0.0 else intersect([s], slack=[g])
         if shape is None:  # qhull failed on the grown bound: its bounding sphere, grown
-            shape = Shape("sphere", (s.bounding_radius() + g,), s.position, name=s.name)
+            shape = Shape("sphere", (s.bounding_radius() + np.max(g),), s.position,
+                          name=s.name)
+    elif len(members) > 1:
+        # every view's bound holds the object too: a sphere's polytope of tangent planes is
+        # larger than the sphere, so two fitted spheres intersect into more than either
+        alone = [_grown(s, g) for s, g in members if s.kind != "points"]
+        shape = min([shape, *alone], key=volume)
     return shape, not whole

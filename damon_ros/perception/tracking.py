@@ -79,6 +79,9 @@ class Detection(NamedTuple):
     points: int
     area_px: int
     seen: Shape | None = None
+    surface: np.ndarray | None = None
+    """The visible points themselves (base frame, N x 3): fusion checks every other view's
+    bound against them (`fusion.fuse`)."""
 
 
 _EXTREMES = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
@@ -119,9 +122,10 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
             continue
         estimate = estimate_shape(camera, points, config, name=blob.color,
                                   partial=blob.partial)
+        surface = to_base_frame(camera, points)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
-                               len(points), blob.area_px,
-                               seen_part(to_base_frame(camera, points), blob.color)))
+                               len(points), blob.area_px, seen_part(surface, blob.color),
+                               surface))
     return found
 
 
@@ -295,7 +299,9 @@ class Tracker:
         for color in sorted({d.color for view in views for d in view}):
             mine = [[d for d in view if d.color == color] for view in views]
             per_view = [[(d.shape, d.partial) for d in view] for view in mine]
-            for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored):
+            seen = [[d.surface for d in view] for view in mine]
+            for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
+                                                seen, self.config.face_tolerance_m):
                 seen = _union([mine[v][i].seen for v, i in members], color)
                 out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0,
                                      seen))
