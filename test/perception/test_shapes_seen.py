@@ -324,3 +324,25 @@ def test_synchronised_cameras_arriving_one_by_one_fuse_as_one_instant():
         assert depth == pytest.approx(np.ptp(shapes.enclosing_vertices(synced.shape)[:, 0]))
         assert depth < 0.06 + 0.04
     assert tracker.update_camera(1, side, *frames[1], t) is None  # that instant has it
+
+
+def test_a_bound_that_leaves_out_what_another_camera_saw_is_not_intersected():
+    """Camera 1's bound rests on a prior the object breaks (it ends 3 cm short of the far
+    end that camera 0 saw): intersected, it would cut the object; it is left out, while a
+    bound that misses a seen point by a millimetre (noise) only moves that face out."""
+    from damon_ros.perception.fusion import fuse
+
+    truth = Shape("box", (0.3, 0.06, 0.06), [0.5, 0.0, 0.5])
+    seen0 = truth.position + np.array([[0.15, 0.0, 0.0], [-0.15, 0.0, 0.0], [0, 0.03, 0.03]])
+    whole0 = Shape("box", (0.32, 0.08, 0.2), truth.position)  # deep along z: its prior
+    short1 = Shape("box", (0.24, 0.2, 0.08), [0.47, 0.0, 0.5])  # ends at x = 0.59 < 0.65
+    seen1 = truth.position + np.array([[0.0, 0.0, 0.03], [0.1, 0.03, 0.0]])
+    ((shape, partial, members),) = fuse([[(whole0, False)], [(short1, False)]], 0.15,
+                                        seen=[[seen0], [seen1]])
+    assert not partial and members == [(0, 0), (1, 0)]
+    assert shapes.contains(shape, shapes.surface_samples(truth, 0.01), 1e-9).all()
+    nearly = Shape("box", (0.299, 0.2, 0.08), truth.position)  # 0.5 mm short at each end
+    ((shape, _, _),) = fuse([[(whole0, False)], [(nearly, False)]], 0.15,
+                            seen=[[seen0], [seen1]])
+    assert shapes.contains(shape, shapes.surface_samples(truth, 0.01), 1e-9).all()
+    assert np.ptp(shapes.enclosing_vertices(shape)[:, 2]) < 0.1  # still cut to 8 cm in z
