@@ -116,7 +116,10 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     ``views[c]`` holds camera ``c``'s ``(shape, partial)`` pairs; ``slack[c]`` (m, default
     0) grows camera ``c``'s bounds before they are used (an older frame: see the module
     text). Detections of different cameras are one object when their bounds overlap and
-    their centres are within ``gate_m`` (greedy, in camera order); each object's bound is
+    their centres are within ``gate_m`` (greedy, in camera order; a partial view's centre
+    is not gated, its bound only has to overlap: the check below keeps an object it was
+    wrongly joined with, since the partial's points then leave the other bound out, and
+    the partial bound is what remains); each object's bound is
     the intersection of its whole views (of its partial ones when it has no whole view). A
     fused object is partial only when every view of it is. ``anchored``: only the objects
     camera 0 sees are returned (the other views only tighten them; an object seen only in
@@ -142,10 +145,10 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
             for g, group in enumerate(groups):
                 if g in taken:
                     continue
-                first, _, first_grow = group[0]
+                first, first_partial, first_grow = group[0]
                 d = float(np.linalg.norm(first.position - shape.position))
-                if d > best_d:
-                    continue
+                if d > best_d and not (partial or first_partial):
+                    continue  # (a cut-off view's centre says little: overlap decides)
                 pair = intersect([first, shape], slack=[first_grow, grow])
                 if pair is not None:
                     best, best_d = g, d

@@ -68,8 +68,8 @@ class Detection(NamedTuple):
 
     ``partial``: the blob touches the image border or a nearer surface borders it, so part of
     the obstacle may be hidden and the bound is only a bound of what is visible.
-    ``seen``: the visible surface alone (base frame; :func:`seen_part`), what the bound holds
-    for certain; the rest of the bound is the hidden extent that no camera saw.
+    ``seen``: the visible surface alone (base frame; :func:`seen_part`): what the cameras
+    saw of the object; the rest of the bound is the hidden extent that no camera saw.
     """
 
     color: str

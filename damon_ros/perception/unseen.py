@@ -55,6 +55,6 @@ def unseen_blockers(resolve: Callable[[list[Shape]], tuple[np.ndarray | None, st
 
 def unseen_reason(reason: str, names: Sequence[str]) -> str:
     """The refusal reason completed with the unseen part that causes it."""
-    return (f"{reason} — only with the unseen part of {', '.join(names)} (the hidden extent "
-            "behind what the cameras saw, bounded by the tracker's max_thickness_m; the goal "
-            "is clear of what they saw)")
+    return (f"{reason} — only with the unseen part of {', '.join(names)} (the tracker's "
+            "bound of what lies behind the surface the cameras saw; the goal is clear of that "
+            "surface)")
