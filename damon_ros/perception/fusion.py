@@ -77,15 +77,28 @@ def _interior(hs: np.ndarray, guesses: Sequence[np.ndarray] = ()) -> np.ndarray 
     return result.x[:3]
 
 
-def _moved_out(shape: Shape, grow) -> np.ndarray:
-    """`halfspaces` of ``shape``, each moved out by ``grow`` (m; one value or one per row)."""
-    hs = halfspaces(shape)
+class _Planes:
+    """`halfspaces` of each shape once per `fuse` call (a point set's takes a hull)."""
+
+    def __init__(self) -> None:
+        self._known: dict[int, tuple[Shape, np.ndarray]] = {}  # the shape keeps its id
+
+    def __call__(self, shape: Shape) -> np.ndarray:
+        found = self._known.get(id(shape))
+        if found is None:
+            found = self._known[id(shape)] = (shape, halfspaces(shape))
+        return found[1]
+
+
+def _moved_out(planes: np.ndarray, grow) -> np.ndarray:
+    """Half-spaces moved out by ``grow`` (m; one value or one per row)."""
+    hs = planes.copy()
     hs[:, 3] -= grow
     return hs
 
 
-def intersect(shapes: list[Shape], name: str = "", slack: Sequence | None = None
-              ) -> Shape | None:
+def intersect(shapes: list[Shape], name: str = "", slack: Sequence | None = None,
+              planes=halfspaces) -> Shape | None:
     """The convex intersection of several bounds of one object as a point set, or None
     when they do not overlap. ``slack[i]`` (m) grows bound ``i`` first: every one of its
     half-spaces moves out by it (a value, which contains the bound's Minkowski sum with a
@@ -93,7 +106,7 @@ def intersect(shapes: list[Shape], name: str = "", slack: Sequence | None = None
     slack = [0.0] * len(shapes) if slack is None else list(slack)
     if len(shapes) == 1 and np.max(slack[0]) <= 0.0:
         return shapes[0]
-    hs = np.vstack([_moved_out(s, g) for s, g in zip(shapes, slack, strict=True)])
+    hs = np.vstack([_moved_out(planes(s), g) for s, g in zip(shapes, slack, strict=True)])
     centres = [s.position for s in shapes]
     centre = _interior(hs, [*centres, np.mean(centres, axis=0)])
     if centre is None:
@@ -135,6 +148,7 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     """
     slack = [0.0] * len(views) if slack is None else list(slack)
     seen = [[None] * len(v) for v in views] if seen is None else seen
+    planes = _Planes()
     groups: list[list[tuple[Shape, bool, float]]] = []
     members: list[list[tuple[int, int]]] = []
     pairs: dict[tuple[int, int, int], Shape] = {}  # (group, camera, index): its first & it
@@ -149,7 +163,7 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                 d = float(np.linalg.norm(first.position - shape.position))
                 if d > best_d and not (partial or first_partial):
                     continue  # (a cut-off view's centre says little: overlap decides)
-                pair = intersect([first, shape], slack=[first_grow, grow])
+                pair = intersect([first, shape], slack=[first_grow, grow], planes=planes)
                 if pair is not None:
                     best, best_d = g, d
                     pairs[(g, c, i)] = pair
@@ -166,21 +180,22 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     out = []
     for g, (group, m) in enumerate(zip(groups, members, strict=True)):
         surfaces = [seen[c][i] for c, i in m]
-        checked = _consistent(group, surfaces, tolerance_m)
+        checked = _consistent(group, surfaces, tolerance_m, planes)
         # two views of the same status: their intersection was found while grouping
         unchanged = len(checked) == 2 and all(
             np.ndim(c[2]) == 0 and c[2] == x[2] for c, x in zip(checked, group, strict=False))
         pair = (pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1]
                 and unchanged else None)
-        out.append((*_fused(checked, pair), m))
+        out.append((*_fused(checked, pair, planes), m))
     return out
 
 
 def _grown(shape: Shape, grow) -> Shape:
     """A sphere, box or cylinder grown as `_moved_out` grows its half-spaces, as the same
     kind of shape: a box face by face, the others by the largest value."""
-    grow = np.maximum(np.broadcast_to(np.asarray(grow, dtype=float),
-                                      (len(halfspaces(shape)),)), 0.0)
+    grow = np.maximum(np.atleast_1d(np.asarray(grow, dtype=float)), 0.0)
+    if shape.kind == "box" and grow.size == 1:
+        grow = np.full(6, grow[0])
     size = np.asarray(shape.size, dtype=float)
     position = np.asarray(shape.position, dtype=float)
     if shape.kind == "box":  # rows: +x, +y, +z, -x, -y, -z faces (`halfspaces`)
@@ -195,7 +210,7 @@ def _grown(shape: Shape, grow) -> Shape:
 
 
 def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarray | None],
-                tolerance_m: float) -> list[tuple[Shape, bool, float]]:
+                tolerance_m: float, planes=halfspaces) -> list[tuple[Shape, bool, float]]:
     """The group's views whose bounds hold what the others saw (`fuse`), each grown by the
     little it missed; a view whose bound misses more is left out (never all of them)."""
     if len(group) < 2 or all(s is None for s in surfaces):
@@ -206,7 +221,7 @@ def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarra
         if not others:
             kept.append((shape, partial, grow))
             continue
-        hs = halfspaces(shape)
+        hs = planes(shape)
         excess = np.max(np.vstack(others) @ hs[:, :3].T + hs[:, 3], axis=0) - grow
         if excess.max() <= 0.0:
             kept.append((shape, partial, grow))
@@ -215,15 +230,16 @@ def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarra
     return kept or group
 
 
-def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None
-           ) -> tuple[Shape, bool]:
+def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None,
+           planes=halfspaces) -> tuple[Shape, bool]:
     """One object's bound from its views: the intersection of the whole ones (or of the
     partial ones when none is whole), each grown by its slack (``pair``: that intersection
     of a group of two, already known)."""
     whole = [(s, g) for s, p, g in group if not p]
     members = whole or [(s, g) for s, _, g in group]
     shape = pair if pair is not None else intersect([s for s, _ in members],
-                                                    slack=[g for _, g in members])
+                                                    slack=[g for _, g in members],
+                                                    planes=planes)
     if shape is None:  # views that overlap pairwise but not all together: keep one
         s, g = min(members, key=lambda m: m[0].bounding_radius() + np.max(m[1]))
         # the smallest bound of a whole view still contains the object
