@@ -261,7 +261,8 @@ def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None,
         motion = motion or {}
         alone = [_grown(s, motion.get(id(s), g)) for s, g in members if s.kind != "points"]
         if alone:
-            primitive = min(alone, key=volume)
-            if volume(shape) > POLYTOPE_GAIN * volume(primitive):
+            sizes = [volume(a) for a in alone]  # primitives: closed forms
+            primitive = alone[int(np.argmin(sizes))]
+            if volume(shape) > POLYTOPE_GAIN * min(sizes):
                 shape = primitive
     return shape, not whole

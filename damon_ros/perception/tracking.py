@@ -95,7 +95,8 @@ def seen_part(points_base: np.ndarray, name: str = "") -> Shape:
     marker small). It tells a refusal caused by what was seen from one caused by the hidden
     extent (:mod:`damon_ros.perception.unseen`); it bounds nothing."""
     points = np.asarray(points_base, dtype=float).reshape(-1, 3)
-    chosen = points[np.unique(np.argmax(points @ _EXTREMES.T, axis=0))]
+    scores = _EXTREMES @ np.ascontiguousarray(points.T)  # 26 x N: argmax along rows
+    chosen = points[np.unique(np.argmax(scores, axis=1))]
     mid = 0.5 * (chosen.min(axis=0) + chosen.max(axis=0))
     return Shape("points", (), mid, points=chosen - mid, name=name)
 
