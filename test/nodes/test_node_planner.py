@@ -249,9 +249,9 @@ def test_a_goal_refused_only_by_an_unseen_part_says_so_waits_and_is_dropped(cell
     trajectories, q0 = len(cell.trajectories), cell.q()
     try:
         cell.goal_pub.publish(goal_msg(position, quat))
-        line = _one_new_line(cell, "planner", "goal refused", before, timeout_s=5.0)
+        line = _one_new_line(cell, "planner", "goal refused", before, timeout_s=15.0)
         assert "only with the unseen part of test#1" in line and "waiting up to 3 s" in line
-        dropped = _one_new_line(cell, "planner", "goal refused", before + 1, timeout_s=8.0)
+        dropped = _one_new_line(cell, "planner", "goal refused", before + 1, timeout_s=20.0)
     finally:
         cell.obstacles[1:] = []
     print(f"\n{line.split('] ', 1)[-1]}\n{dropped.split('] ', 1)[-1]}")
@@ -263,7 +263,7 @@ def test_a_goal_refused_only_by_an_unseen_part_says_so_waits_and_is_dropped(cell
     cell.ros.spin_for(0.3)
     try:
         cell.goal_pub.publish(goal_msg(position, quat))
-        _one_new_line(cell, "planner", "goal refused", before + 2, timeout_s=5.0)
+        _one_new_line(cell, "planner", "goal refused", before + 2, timeout_s=15.0)
         cell.obstacles[1:] = [Shape("box", (0.05, 0.1, 0.1), face.position)]
         assert cell.ros.spin_until(lambda: cell.at(GOAL_A), 25.0), cell.logs()
     finally:
