@@ -13,9 +13,14 @@ import pytest
 
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels():
+    from damon_ros.core.limits import joint_limits
     from damon_ros.core.robot import Robot
-    from damon_ros.planning import path_shortcutting, rrt_connect
+    from damon_ros.planning import path_shortcutting, rrt_connect, space_time
+    from damon_ros.planning.follower import CommandShaper
 
-    spheres = Robot("fast").spheres
+    robot = Robot("fast")
+    spheres = robot.spheres
     rrt_connect.warm_up(spheres)
     path_shortcutting.warm_up(spheres)
+    space_time.warm_up(robot)
+    CommandShaper(joint_limits("fr3"))  # its kernels and the FR3's velocity bounds

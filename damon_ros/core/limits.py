@@ -17,9 +17,11 @@ and mock_panda's monitor use; the Panda's bounds are its constants.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 READY = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 """Franka's "ready" posture: mock_panda's start, IK's default seed, every test's home.
@@ -75,6 +77,32 @@ VELOCITY_TOLERANCE = 1e-3
 on the FR3) x 1e-3 x max_acc. Bounds are this much inside the curve."""
 
 
+@njit(cache=True)
+def curve_bound(q: float, c: float, k: float, p_up: float, p_lo: float,
+                vmax: float) -> tuple[float, float]:
+    """(lower, upper) unscaled libfranka bound of one joint at ``q`` (NaN for a NaN ``q``).
+
+    Compiled, and called by the controller's shaping inside its own compiled kernel: as
+    numpy on one 7-joint state the bound cost ~15 us, twice per 1 kHz tick on the FR3."""
+    if q != q:
+        return math.nan, math.nan
+    up_room = math.sqrt(max(0.0, k * (p_up - q)))
+    lo_room = math.sqrt(max(0.0, k * (q - p_lo)))
+    upper = min(vmax, max(0.0, up_room - c)) - VELOCITY_TOLERANCE
+    lower = max(-vmax, min(0.0, c - lo_room)) + VELOCITY_TOLERANCE
+    return lower, upper
+
+
+@njit(cache=True)
+def curve_bounds(q, c, k, p_up, p_lo, vmax, scale: float, lower, upper) -> None:
+    """`curve_bound` of every joint of every state in ``q`` (N, n), times ``scale``, into
+    ``lower`` and ``upper``."""
+    for i in range(q.shape[0]):
+        for j in range(q.shape[1]):
+            lo, up = curve_bound(q[i, j], c[j], k[j], p_up[j], p_lo[j], vmax[j])
+            lower[i, j], upper[i, j] = scale * lo, scale * up
+
+
 @dataclass(frozen=True)
 class VelocityCurve:
     """libfranka's position-dependent velocity bound parameters, one value per joint."""
@@ -117,11 +145,10 @@ class JointLimits:
                      else np.broadcast_to(self.velocity, q.shape).copy())
             return -upper, upper
         c, vmax = self.curve, self.velocity / self.velocity_scale  # the unscaled vmax
-        up_room = np.sqrt(np.maximum(0.0, c.k * (c.p_up - q)))
-        lo_room = np.sqrt(np.maximum(0.0, c.k * (q - c.p_lo)))
-        upper = np.minimum(vmax, np.maximum(0.0, up_room - c.c)) - VELOCITY_TOLERANCE
-        lower = np.maximum(-vmax, np.minimum(0.0, c.c - lo_room)) + VELOCITY_TOLERANCE
-        return self.velocity_scale * lower, self.velocity_scale * upper
+        states = np.ascontiguousarray(q.reshape(-1, q.shape[-1]))
+        lower, upper = np.empty_like(states), np.empty_like(states)
+        curve_bounds(states, c.c, c.k, c.p_up, c.p_lo, vmax, self.velocity_scale, lower, upper)
+        return lower.reshape(q.shape), upper.reshape(q.shape)
 
     def velocity_excess(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         """How far each joint velocity ``qd`` at ``q`` lies beyond its bound (0 within)."""

@@ -2,11 +2,13 @@
 
 Thin adapter over :class:`damon_ros.planning.reactive.ReactivePlanner`: it parses parameters and
 messages, keeps the latest joint state and obstacle table, and publishes what the runtime
-decides. Joint states and obstacle arrays are taken by reader threads of their own
-(`TopicReader`: the executor let both go stale), so they keep arriving while a route
-is computed; each batch of obstacle arrays is decided on at once in its reader thread,
-goals, services and the fixed-rate path check in the (single-threaded) executor, one at a
-time (``deciding``).
+decides. Obstacle arrays are taken by a reader thread of its own (`TopicReader`: the
+executor let them go stale) that sleeps until one arrives, so they keep arriving while a
+route is computed; each batch is decided on at once in that thread, goals, services and
+the fixed-rate path check in the (single-threaded) executor, one at a time (``deciding``).
+Joint states are not read as they come (1 kHz from franka or mock_panda): a decision takes
+the newest one from its subscription (an `Inbox` keeping one message) when it needs it, so
+the planner pays for the states it uses, not for 1,000 a second.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from damon_ros.ros.stamps import (
     to_duration,
     to_stamp,
 )
-from damon_ros.ros.topic_reader import TopicReader
+from damon_ros.ros.topic_reader import Inbox, TopicReader
 
 NAME = "planner"
 
@@ -84,8 +86,6 @@ PARAMETERS = (
     Param("unseen_goal_wait_s", 3.0, "a goal refused only because of the unseen (hidden-"
           "extent) part of a tracked obstacle waits this long for a better view, tried "
           "again every 0.2 s, then is dropped (s; 0 = dropped at once)", 0.0, 60.0),
-    Param("joint_state_period_s", 0.005, "joint states are taken every this many s",
-          0.001, 1.0),
     Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
           0.001, 60.0),
     Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
@@ -176,16 +176,17 @@ class PlannerNode(Node):
         self.last_event = "idle"
         self.unseen_wait_s = p["unseen_goal_wait_s"]
         self._unseen_goal: tuple | None = None  # (goal, since, last try): see `_unseen`
+        self._to_show = None  # a published route not yet visualised
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
         self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
         self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
-        self.joint_states = TopicReader(self, JointState, p["joint_states_topic"],
-                                        p["joint_state_period_s"], self._on_joint_state,
-                                        suffix="joint_states")
+        # the newest joint state only: `_take_joint_state` reads it when a decision needs it
+        self.joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states",
+                                  qos=1)
         self._obstacles_received: float | None = None  # first array of the pending batch
-        self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES, 0.002,
+        self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES,
                                            self._on_obstacles, suffix="obstacles",
                                            qos=qos_profile_sensor_data,
                                            on_drained=self._on_obstacles_drained)
@@ -202,18 +203,27 @@ class PlannerNode(Node):
             f"vertices, {len(self.model.graph.nodes)} obstacle nodes), margin {config.margin} m")
 
     # ---- inputs -----------------------------------------------------------------------
-    def _on_joint_state(self, msg: JointState) -> None:
-        q = read_joint_state(self.joint_reader, msg, self.problems, self.get_logger().info)
-        if q is None:
-            return
-        qd = self.joint_reader.velocities(msg)
-        now = clock_seconds(self)
-        measured = now if is_zero(msg.header.stamp) else min(stamp_seconds(msg.header.stamp), now)
+    def _take_joint_state(self) -> None:
+        """Keep the newest joint state waiting in the subscription, if a good one is.
+
+        Its age counts from its reception by the middleware, not from this call."""
         with self.lock:
-            self.q, self.qd, self.q_stamp, self.q_measured_at = q, qd, now, measured
+            for item in self.joint_states.take_all():
+                msg = item.msg
+                q = read_joint_state(self.joint_reader, msg, self.problems,
+                                     self.get_logger().info)
+                if q is None:
+                    continue
+                now = clock_seconds(self)
+                received = now - max(0.0, time.monotonic() - item.arrived)
+                measured = (received if is_zero(msg.header.stamp)
+                            else min(stamp_seconds(msg.header.stamp), now))
+                self.q, self.qd = q, self.joint_reader.velocities(msg)
+                self.q_stamp, self.q_measured_at = received, measured
 
     def _current_state(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(positions, velocities or None) of a fresh joint state; (None, None) if stale."""
+        self._take_joint_state()
         with self.lock:
             if self.q is None or clock_seconds(self) - self.q_stamp > self.joint_state_timeout:
                 return None, None
@@ -400,6 +410,7 @@ class PlannerNode(Node):
         so that a brake from an old state has not ended on arrival (JTC refuses a stamped
         trajectory whose end has passed); the arm then settles at the brake's end. A hold at
         rest goes out unstamped: it starts on arrival."""
+        self._take_joint_state()
         with self.lock:
             q, qd, measured_at = self.q, self.qd, self.q_measured_at
         if q is None:
@@ -418,8 +429,22 @@ class PlannerNode(Node):
 
     def _publish_trajectory(self, result) -> None:
         self.pub_traj.publish(self._trajectory_msg(result.trajectory.resample(0.02)))
-        self.pub_path.publish(self._tcp_path(result.path))
-        self.pub_graph.publish(self._graph_markers(result))
+        self._to_show = result  # its path and graph markers: `_publish_visualisation`
+
+    def _publish_visualisation(self) -> None:
+        """The last route's TCP path and searched subgraph, for RViz, from the status timer.
+
+        Why not with the trajectory: the markers hold up to 5,000 points built one Python
+        object at a time, and the path a forward kinematics per pose, 5-15 ms that the next
+        decision waited for (they ran under ``deciding``) and that the arm gains nothing
+        from. Nothing is built for a topic nobody subscribes to."""
+        result, self._to_show = self._to_show, None
+        if result is None:
+            return
+        if self.pub_path.get_subscription_count():
+            self.pub_path.publish(self._tcp_path(result.path))
+        if self.pub_graph.get_subscription_count():
+            self.pub_graph.publish(self._graph_markers(result))
 
     def _tcp_path(self, path: np.ndarray) -> Path:
         msg = Path()
@@ -466,6 +491,8 @@ class PlannerNode(Node):
         return MarkerArray(markers=[vertices, route])
 
     def _publish_status(self) -> None:
+        self._publish_visualisation()
+        self._take_joint_state()  # the age it reports is that of the newest state
         rt = self.runtime
         stats = rt.stats
         latencies = stats.replan_latency_ms

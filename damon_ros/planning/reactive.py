@@ -19,6 +19,7 @@ import numpy as np
 
 from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
+from damon_ros.planning.space_time import movers
 
 
 def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
@@ -53,6 +54,12 @@ def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
     return Shape(shape.kind, size, center, shape.orientation, name=shape.name)
 
 
+def _age(perception_age_s: float) -> float:
+    """The age of obstacle data for the prediction (an unknown age, inf, counts as none:
+    the prediction's own minimum age applies)."""
+    return perception_age_s if math.isfinite(perception_age_s) else 0.0
+
+
 @dataclass
 class Event:
     """What the caller must do now. ``kind``: ``trajectory`` (send ``result.trajectory``),
@@ -74,6 +81,7 @@ class RuntimeConfig:
     perception_timeout_s: float = 0.0  # 0 = do not require fresh obstacle data
     goal_wait_s: float = 5.0  # a goal waiting for obstacle data is dropped after this long
     obstacle_source: str = "the obstacle topic"  # named in the waiting goal's message
+    space_time: bool = True  # timed trajectories checked against the movers' predictions
 
 
 @dataclass
@@ -108,10 +116,15 @@ class ReactivePlanner:
         self._still_since = 0.0
         self.stats = RuntimeStats()
 
-    def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]]) -> Scene:
-        """Obstacles now and swept along their velocities over the prediction horizon."""
+    def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]],
+              age_s: float = 0.0) -> Scene:
+        """Obstacles now, swept along their velocities over the prediction horizon, and the
+        moving ones (``age_s`` old) for the space-time check of timed trajectories."""
         h = self.config.prediction_horizon_s
-        return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles))
+        moving = movers(obstacles, self.planner.config.prediction) if self.config.space_time \
+            else ()
+        return Scene(tuple(s for s, _ in obstacles), tuple(swept(s, v, h) for s, v in obstacles),
+                     moving, age_s)
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
                  perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event:
@@ -132,7 +145,8 @@ class ReactivePlanner:
                 "(goal_wait_timeout_s)")
         self.pending_goal = None
         t0 = time.perf_counter()
-        result = self.planner.plan(q_now, goal, self.scene(obstacles), qd_start=qd_now)
+        result = self.planner.plan(q_now, goal, self.scene(obstacles, _age(perception_age_s)),
+                                   qd_start=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)
@@ -161,7 +175,7 @@ class ReactivePlanner:
         if timeout > 0 and perception_age_s > timeout and self.state == "executing":
             return self._hold(f"obstacle data is {perception_age_s:.2f} s old "
                               f"(limit {timeout:.2f} s)")
-        shapes = self.scene(obstacles)
+        shapes = self.scene(obstacles, _age(perception_age_s))
         if self.risk is not None and shapes.now:
             self.last_probability = float(self.risk(q_now, shapes.now))
         if self.state == "holding":

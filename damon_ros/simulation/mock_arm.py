@@ -173,6 +173,7 @@ class LimitMonitor:
         self._t: float | None = None
         self._sent: float | None = None
         self._at_limit = np.zeros(limits.lower.size, dtype=bool)
+        limits.velocity_bounds(0.5 * (limits.lower + limits.upper))  # compiled now, not in a tick
 
     @property
     def violations(self) -> int:

@@ -51,12 +51,13 @@ moving obstacles, and closes grasp goals the data set places 8-30 mm from an obj
 
 
 def make_runtime(name: str, model, fast, seed: int, solve_time: float,
-                 margin: float | None = None, fallback_s: float | None = None):
+                 margin: float | None = None, fallback_s: float | None = None,
+                 space_time: bool = True):
     from dataclasses import replace
 
     from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
     from damon_ros.planning.ompl_baseline import OmplPlanner
-    from damon_ros.planning.reactive import ReactivePlanner
+    from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
 
     config = PlannerConfig() if margin is None else PlannerConfig(margin=margin)
     if fallback_s is not None:
@@ -72,13 +73,15 @@ def make_runtime(name: str, model, fast, seed: int, solve_time: float,
         planner = OmplPlanner(name, fast, fast.limits, config, solve_time=solve_time, seed=seed)
         settings = planner.settings()
     planner.warm_up()
-    runtime = ReactivePlanner(planner)
+    settings["space_time"] = space_time
+    runtime = ReactivePlanner(planner, RuntimeConfig(space_time=space_time))
     return (_PlanOnce(runtime) if name == "damon-noreplan" else runtime), settings
 
 
 def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     from damon_ros.core.robot import Robot
     from damon_ros.simulation.closed_loop import SimConfig, run_scenario
+    from damon_ros.simulation.scenario_generation import mover_speed, speed_band
 
     fast, mesh = Robot("fast", args.profile), Robot("mesh")
     config = SimConfig(perception=args.perception, perception_latency=args.latency,
@@ -88,14 +91,19 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     for scenario in scenarios:
         for name in planners:
             runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time,
-                                             args.margin)
+                                             args.margin, space_time=not args.no_space_time)
             t0 = time.perf_counter()
             try:
                 record = run_scenario(scenario, runtime, name, mesh, fast, config).as_json()
             except Exception as exc:  # one broken run must not stop the benchmark
                 record = {"scenario": scenario.name, "planner": name, "success": False,
                           "error": f"run failed: {exc!r}"}
+            speed = mover_speed(scenario)
+            band = speed_band(speed)
             record.update(family=scenario.family, dynamic=scenario.is_dynamic,
+                          mover_speed_m_s=round(speed, 3),
+                          band=("static" if speed == 0.0 else
+                                f"{band[0]:g}-{band[1]:g} m/s" if band else "other"),
                           planner_settings=settings, perception=args.perception,
                           **({"cameras": args.cameras} if args.perception == "camera" else {}),
                           wall_time_s=round(time.perf_counter() - t0, 3))
@@ -190,6 +198,32 @@ def summary(records: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def band_summary(records: list[dict]) -> str:
+    """The stress view: one row per (mover speed band, planner) — success, contacts, the
+    least clearance (over each run's minimum: worst, 5th percentile, median) and re-plan
+    latency (p50, p99, and the most)."""
+    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for r in records:
+        if "planner" in r and "band" in r:
+            groups[(r["band"], r["planner"])].append(r)
+    header = (f"{'band':<14} {'planner':<12} {'runs':>4} {'success':>8} {'contacts':>8} "
+              f"{'clr min mm':>10} {'clr p5 mm':>9} {'clr p50 mm':>10} {'replans':>7} "
+              f"{'replan p50 ms':>13} {'replan p99 ms':>13} {'replan max ms':>13}")
+    lines = [header, "-" * len(header)]
+    for (band, planner), rs in sorted(groups.items()):
+        clear = [1e3 * r["min_clearance_m"] for r in rs if r.get("min_clearance_m") is not None]
+        replans = [x for r in rs for x in (r.get("replan_latency_ms") or [])]
+        lines.append(
+            f"{band:<14} {planner:<12} {len(rs):>4} "
+            f"{100 * np.mean([bool(r.get('success')) for r in rs]):>7.1f}% "
+            f"{sum(bool(r.get('collided')) for r in rs):>8} "
+            f"{min(clear, default=float('nan')):>10.1f} {_pct(clear, 5):>9.1f} "
+            f"{_pct(clear, 50):>10.1f} {len(replans):>7} "
+            f"{_pct(replans, 50):>13.2f} {_pct(replans, 99):>13.2f} "
+            f"{max(replans, default=float('nan')):>13.2f}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     from damon_ros.core.scenario import ScenarioError, load_scenario, scenario_files
     from damon_ros.learning.bundle import DamonModel, ModelError
@@ -219,6 +253,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="joint-limit profile the planners and the limit check use (fr3: "
                              "libfranka's position-dependent velocity bound)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--by-band", action="store_true",
+                        help="also a table per mover speed band (the stress bench: "
+                             "`damon-ros scenarios generate --families S --bands all`)")
+    parser.add_argument("--no-space-time", action="store_true",
+                        help="certify paths against swept obstacles only (the rule before "
+                             "space-time certification), for comparison")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     if args.margin is not None and not 0.0 <= args.margin <= 0.5:
@@ -259,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
                     out.write(json.dumps({"scenario": str(file), "error": str(exc)}) + "\n")
         records += run_scenarios(scenarios, planners, model, out, args)
     print(summary(records))
+    if args.by_band:
+        print("\n" + band_summary(records))
     print(f"\n{len(records)} runs in {time.perf_counter() - t0:.0f} s; {bad} bad scenario "
           f"file(s); results in {args.out}")
     return 0

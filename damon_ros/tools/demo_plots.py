@@ -84,17 +84,67 @@ def _animation(path: Path, scenario, t, q, rec, fps: float = 10.0) -> Path:
         pts = np.array([robot.fk(q[k], f)[:3, 3] for f in ARM_FRAMES])
         ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "o-", color="0.3", lw=4, ms=3)
         for obstacle in scenario.obstacles:
-            shape = obstacle.shape_at(when)
-            ax.scatter(*shape.position, s=2000 * shape.bounding_radius(),
-                       color=COLORS[obstacle.color], alpha=0.6)
+            for part in obstacle.parts_at(when):
+                draw_shape(ax, part, COLORS[obstacle.color], estimate=False)
+        for shape in _estimate_at(rec.estimates, when):
+            draw_shape(ax, shape, "0.2", estimate=True)
         current = [p for tt, p in plans if tt <= when]
         if current:
             tcp = np.array([robot.tcp_pose(x)[0] for x in current[-1][::5]])
             ax.plot(tcp[:, 0], tcp[:, 1], tcp[:, 2], "g--", lw=1)
         ax.set(xlim=(-0.2, 0.9), ylim=(-0.8, 0.8), zlim=(0.0, 1.0), xlabel="x", ylabel="y",
-               zlabel="z", title=f"{scenario.name}  t = {when:5.2f} s")
+               zlabel="z", title=f"{scenario.name}  t = {when:5.2f} s\n"
+               "filled: true obstacles, wireframe: what the planner is told")
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
     imageio.mimsave(path, frames, duration=1.0 / fps, loop=0)
     return path
+
+
+def _estimate_at(estimates: list, when: float) -> list:
+    """The planner's obstacle shapes as last received at or before ``when``."""
+    shapes = []
+    for t, current in estimates:
+        if t > when:
+            break
+        shapes = current
+    return shapes
+
+
+def draw_shape(ax, shape, color, estimate: bool) -> None:
+    """A shape as it is: a sphere as a sphere, a (rotated) box, cylinder or point set as
+    the hull of its `enclosing_vertices`; a true one filled, an estimate as a wireframe."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from damon_ros.core.shapes import enclosing_vertices
+
+    if shape.kind == "sphere":
+        u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 16), np.linspace(0, np.pi, 9))
+        xyz = [shape.position[i] + shape.size[0] * w for i, w in enumerate(
+            (np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)))]
+        if estimate:
+            ax.plot_wireframe(*xyz, color=color, lw=0.5, alpha=0.7)
+        else:
+            ax.plot_surface(*xyz, color=color, alpha=0.5, linewidth=0)
+        return
+    faces = shape_faces(shape)
+    if faces is None:  # flat or a single point: show the points
+        ax.scatter(*enclosing_vertices(shape).T, color=color, s=4)
+        return
+    ax.add_collection3d(Poly3DCollection(faces, facecolor="none" if estimate else color,
+                                         edgecolor=color if estimate else "none",
+                                         alpha=0.7 if estimate else 0.5, linewidth=0.5))
+
+
+def shape_faces(shape) -> np.ndarray | None:
+    """(N, 3, 3) hull triangles of a non-sphere shape's `enclosing_vertices`; None if flat."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    from damon_ros.core.shapes import enclosing_vertices
+
+    vertices = enclosing_vertices(shape, sides=16)
+    try:
+        return vertices[ConvexHull(vertices).simplices]
+    except (QhullError, ValueError):
+        return None

@@ -32,6 +32,9 @@ READY_TIMEOUT_S = 90.0  # start-up: a few s on a quiet machine, ~40 s on 2 busy 
 JOINT_PERIOD_S = 1e-3  # mock_panda's rate_hz
 
 
+OBSERVER = "soak (this monitor)"
+
+
 @dataclass(frozen=True)
 class SoakGoal:
     """One goal pose of the cycle, as `damon_ros.tools.soak.check_goals` checked it."""
@@ -209,12 +212,14 @@ def cpu_seconds(pid: int) -> float:
         return math.nan
 
 
-def cpu_shares(before: dict[str, float], after: dict[str, float],
-               seconds: float) -> dict[str, float]:
-    """CPU share (cores) of each process between two `cpu_seconds` samples, and the total."""
+def cpu_shares(before: dict[str, float], after: dict[str, float], seconds: float,
+               observer: str | None = None) -> dict[str, float]:
+    """CPU share (cores) of each process between two `cpu_seconds` samples, and the total
+    of the nodes: every process but ``observer`` (the soak or demo process watching them,
+    which a real cell does not run)."""
     shares = {name: (after.get(name, math.nan) - t0) / max(seconds, 1e-9)
               for name, t0 in before.items()}
-    shares["total"] = float(np.nansum(list(shares.values())))
+    shares["nodes"] = float(np.nansum([v for k, v in shares.items() if k != observer]))
     return shares
 
 
@@ -273,6 +278,7 @@ class Monitor:
         self.planner_log = LogTail(out / "planner.log")
         self.tracker_log = LogTail(out / "tracker.log")
         self.goal = GoalState()
+        self.missed: list[str] = []  # why each goal replaced unreached was (`_why_missed`)
         self.rss: dict[str, list[float]] = {}
         self.q_outside = 0
         self._window_start = 0.0
@@ -401,6 +407,8 @@ class Monitor:
     def _send_goal(self, index: int, t: float) -> None:
         from geometry_msgs.msg import PoseStamped
 
+        if self.goal.index >= 0 and not self.goal.reached:
+            self.missed.append(self._why_missed())
         goal = self.goals[index % len(self.goals)]
         msg = PoseStamped()
         msg.header.frame_id = "panda_link0"
@@ -411,6 +419,14 @@ class Monitor:
         self.goal_pub.publish(msg)
         self.goal = GoalState(index, t, False, self.goal.sent + 1, self.goal.reached_count,
                               self.goal.times)
+
+    def _why_missed(self) -> str:
+        """The goal in force when the next one replaced it unreached, and what the planner
+        was doing then (its status: state and last decision), so a passing sphere's hold
+        reads apart from a refusal."""
+        msg = self.planner_status.message
+        doing = msg.status[0].message if msg is not None and msg.status else "no planner status"
+        return f"{self.goals[self.goal.index % len(self.goals)].name}: {doing}"
 
     def _score(self, now: float) -> None:
         """Reached (TCP within tolerance, arm still) and joint positions inside the limits."""
@@ -435,13 +451,13 @@ class Monitor:
 
     def _cpu_now(self) -> dict[str, float]:
         cpu = {name: cpu_seconds(proc.pid) for name, proc in self.procs.items()}
-        cpu["soak (this monitor)"] = cpu_seconds(os.getpid())
+        cpu[OBSERVER] = cpu_seconds(os.getpid())
         return cpu
 
     def _sample_rss(self) -> None:
         for name, proc in self.procs.items():
             self.rss.setdefault(name, []).append(rss_mb(proc.pid))
-        self.rss.setdefault("soak (this monitor)", []).append(rss_mb(os.getpid()))
+        self.rss.setdefault(OBSERVER, []).append(rss_mb(os.getpid()))
 
     # -- windows
 
@@ -455,7 +471,7 @@ class Monitor:
             "contacts": self.contacts.errors, "trajectories": self.trajectories.published,
             "holds": self.trajectories.holds, "q_outside": self.q_outside,
             "limits": self._limit_counts(), "sent": self.goal.sent,
-            "reached": self.goal.reached_count,
+            "reached": self.goal.reached_count, "missed": len(self.missed),
         }
         self.joints.max_gap, self.joints.gaps = 0.0, 0
         self.contacts.min_clearance, self.contacts.worst = math.inf, ""
@@ -486,7 +502,7 @@ class Monitor:
         row.update(self._dropped())
         row.update(self._latency())
         row.update(self._safety())
-        row["cpu_cores"] = cpu_shares(self._cpu_mark, self._cpu_now(), duration)
+        row["cpu_cores"] = cpu_shares(self._cpu_mark, self._cpu_now(), duration, OBSERVER)
         row["load_avg"] = _load_average()
         row["rss_mb"] = {name: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
                          for name, v in self.rss.items()}
@@ -494,6 +510,7 @@ class Monitor:
         row["goals_reached"] = self.goal.reached_count - m["reached"]
         row["goal_time_s_p50"] = float(np.median(self.goal.times)) if self.goal.times \
             else math.nan
+        row["goals_missed"] = self.missed[m["missed"]:]
         row["planner_status"] = _status_values(self.planner_status.message)
         return row
 

@@ -8,6 +8,7 @@ The bounds are in `damon_ros.tools.soak`'s module docstring and ``damon-ros soak
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 DRIFT_BOUND = 1.10  # last window / first window, p99 re-route latency and each node's RSS
 DRIFT_MIN_WINDOWS = 3  # fewer windows: too short to tell drift from warm-up
@@ -158,6 +159,11 @@ def _pcts(p: dict) -> str:
 def print_report(result: dict) -> None:
     for table in report_tables(result["rows"]):
         print("\n" + table)
+    missed = [why for r in result["rows"] for why in r.get("goals_missed", [])]
+    if missed:
+        print(f"\ngoals replaced unreached ({len(missed)}), with what the planner was doing:")
+        for why, count in Counter(missed).most_common():
+            print(f"  {count} x {why}")
     v = result["verdict"]
     print(f"\nverdict: {'PASS' if v['passed'] else 'FAIL'} (bounds: 0 crashes, 0 contacts, "
           f"0 limit violations, >= 1 goal reached; with >= {DRIFT_MIN_WINDOWS} windows the "

@@ -7,10 +7,10 @@ message must cost exactly one clear log line (no traceback) in each node that re
 move nothing, and leave the node running. A killed node, restarted, must rejoin the others
 without their restart.
 
-The planner here reads every joint state (``joint_state_period_s`` 0; by default it samples
-them) so that one bad message is sure to reach it, mock_panda publishes at 250 Hz to keep
-that cheap, and the arm moves at 0.3 of its velocity limits so that motions last long
-enough to be interrupted.
+The planner takes the newest joint state when it needs one (at least with every 0.1 s
+status), so a bad one reaches it only when no good one follows: the bad-state test pauses
+mock_panda. mock_panda publishes at 250 Hz to keep the cell cheap, and the arm moves at 0.3
+of its velocity limits so that motions last long enough to be interrupted.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import pytest
 import rosutil
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as NavPath
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
@@ -80,6 +81,7 @@ class Cell:
     goal_pub: object
     state_pub: object
     marker_pub: object
+    paths: rosutil.Recorder
     obstacles: list = field(default_factory=lambda: [FAR])
     feeding: bool = True
     last_fed: float = 0.0  # system time (the markers' stamp) of the last obstacle data
@@ -162,7 +164,8 @@ def cell(tmp_path_factory):
                      ros.record(DiagnosticArray, topics.PLANNER_STATUS),
                      ros.publisher(PoseStamped, topics.GOAL_POSE),
                      ros.publisher(JointState, topics.JOINT_STATES),
-                     ros.publisher(MarkerArray, topics.OBSTACLES))
+                     ros.publisher(MarkerArray, topics.OBSTACLES),
+                     ros.record(NavPath, topics.PLANNED_PATH))
             ros.node.create_timer(0.05, c.feed)
             for node in ("mock_panda", "controller", "planner"):
                 c.start(node)
@@ -357,7 +360,16 @@ def test_a_new_goal_while_moving_replaces_the_old_one(cell: Cell):
     assert cell.ros.spin_until(cell.moving, 10.0), cell.logs()
     assert cell.reach(GOAL_B), cell.logs()
     assert len(cell.lines("planner", "plan:")) == plans + 2
+    # the route for RViz follows (from the status timer, off the reaction path) and ends
+    # at the goal's TCP position
+    assert cell.ros.spin_until(lambda: len(cell.paths) and np.linalg.norm(
+        _xyz(cell.paths.last.poses[-1]) - GOAL_B[0]) < 0.02, 5.0), cell.logs()
     assert cell.alive()
+
+
+def _xyz(pose_stamped) -> np.ndarray:
+    p = pose_stamped.pose.position
+    return np.array([p.x, p.y, p.z])
 
 
 def test_stale_perception_stops_the_arm_and_it_resumes_when_data_returns(cell: Cell):

@@ -6,9 +6,10 @@ import json
 
 import numpy as np
 
+from damon_ros.cli import main as cli
 from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.robot import Robot
-from damon_ros.core.scenario import load_public_scenarios
+from damon_ros.core.scenario import load_public_scenarios, load_scenario
 from damon_ros.planning.graph_planner import GraphPlanner, PlanResult
 from damon_ros.planning.reactive import ReactivePlanner
 from damon_ros.simulation.closed_loop import SimConfig, run_scenario
@@ -84,6 +85,23 @@ def test_mbm_table_counts_contacts_refusals_and_every_set_together():
     assert "| 3 | 2 (66.7 %) | 1 |" in total and "| 3.00 |" in total
     assert lines.index(total) > lines.index(box)
     assert "Refused before planning (1)" in lines[-1]
+
+
+def test_the_stress_view_groups_runs_by_mover_speed_band(tmp_path, capsys):
+    folder = tmp_path / "stress"
+    assert cli(["scenarios", "generate", "--families", "S", "--bands", "0.3:0.6,1.0:1.5",
+                "--count", "1", "--seed", "2", "--out", str(folder), "--quiet"]) == 0
+    out = tmp_path / "results.jsonl"
+    assert bench(["--scenarios", str(folder), str(public_scenarios_dir() / "A-001.yaml"),
+                  "--planners", "damon", "--out", str(out), "--by-band", "--quiet"]) == 0
+    runs = {r["scenario"]: r for r in map(json.loads, out.read_text().splitlines())}
+    assert runs["A-001"]["band"] == "static" and runs["A-001"]["mover_speed_m_s"] == 0.0
+    for path in folder.iterdir():
+        r = runs[load_scenario(path).name]
+        assert r["band"] == ("0.3-0.6 m/s" if "v0.3" in path.name else "1-1.5 m/s")
+        assert r["planner_settings"]["space_time"] is True
+    table = capsys.readouterr().out
+    assert "clr min mm" in table and "1-1.5 m/s" in table and "static" in table
 
 
 def test_bench_tracker_compares_camera_sets_and_refuses_a_bad_camera_list(tmp_path, capsys):

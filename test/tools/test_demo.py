@@ -109,3 +109,34 @@ def test_an_obstacle_moved_into_the_path_is_avoided(tmp_path, crossing_scenario)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "success             True" in run.stdout
     assert _reroutes(run.stdout) >= 1, run.stdout
+
+
+def test_animation_draws_true_shapes_and_the_estimate():
+    """A box is drawn as a box (its 12 hull triangles), a sphere as a surface, an estimate as
+    a wireframe, and the estimate shown is the last one received before the frame."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from damon_ros.core.shapes import contains, point
+    from damon_ros.tools.demo_plots import _estimate_at, draw_shape, shape_faces
+
+    box = Shape("box", (0.1, 0.2, 0.3), [0.5, 0.0, 0.4], [0.0, 0.0, 0.38, 0.92])
+    ball = Shape("sphere", (0.05,), [0.3, 0.3, 0.5])
+    fig = plt.figure()
+    ax = fig.add_subplot(projection="3d")
+    faces = shape_faces(box)
+    assert faces.shape == (12, 3, 3)  # 6 faces, 2 triangles each
+    assert contains(box, faces.reshape(-1, 3), 1e-9).all()  # its corners, nothing outside
+    assert shape_faces(point(np.zeros(3))) is None
+    draw_shape(ax, box, "tab:red", estimate=False)
+    draw_shape(ax, ball, "tab:blue", estimate=False)
+    draw_shape(ax, ball, "0.2", estimate=True)
+    assert len(ax.collections) == 3
+    plt.close(fig)
+    estimates = [(0.0, [ball]), (1.0, [box]), (2.0, [])]
+    assert _estimate_at(estimates, -0.5) == []
+    assert _estimate_at(estimates, 0.5) == [ball]
+    assert _estimate_at(estimates, 1.0) == [box]
+    assert _estimate_at(estimates, 5.0) == []

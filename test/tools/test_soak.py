@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from unittest.mock import patch
 
 import numpy as np
 from rosutil import next_domain_id
@@ -123,7 +124,9 @@ def test_cpu_seconds_counts_this_process_busy_time_and_nan_once_gone():
     gone.wait()
     assert math.isnan(cpu_seconds(gone.pid))
     shares = cpu_shares({"a": 1.0, "b": 2.0}, {"a": 1.5, "b": 4.0}, 2.0)
-    assert shares == {"a": 0.25, "b": 1.0, "total": 1.25}
+    assert shares == {"a": 0.25, "b": 1.0, "nodes": 1.25}
+    shares = cpu_shares({"a": 1.0, "b": 2.0}, {"a": 1.5, "b": 4.0}, 2.0, observer="b")
+    assert shares["nodes"] == 0.25  # the watching process is not part of the cell
 
 
 def test_report_has_a_cpu_table_per_node():
@@ -138,9 +141,22 @@ def test_report_has_a_cpu_table_per_node():
            "plan_decided_ms": {"n": 1, "p50": 5.0}, "tracker": {}, "contacts": 0,
            "min_clearance_m": 0.1, "limits": dict.fromkeys(LIMIT_KEYS, 0) | {"q_outside": 0},
            "rss_mb": {"planner": 300.0},
-           "cpu_cores": {"planner": 0.12, "mock_panda": 0.31, "total": 0.43}, "load_avg": 3.2}
+           "cpu_cores": {"planner": 0.12, "mock_panda": 0.31, "nodes": 0.43}, "load_avg": 3.2}
     cpu = report_tables([row])[-1]
     assert "CPU mock_panda" in cpu and "0.31" in cpu and "0.43" in cpu and "3.2" in cpu
+
+
+def test_report_names_why_goals_were_missed(capsys):
+    from damon_ros.tools.soak_report import print_report
+
+    rows = [{"goals_missed": ["C-002: holding: an obstacle blocks the remaining path"] * 2},
+            {"goals_missed": ["A-001: refused: all IK solutions collide"]}]
+    with patch("damon_ros.tools.soak_report.report_tables", return_value=[]):
+        print_report({"rows": rows, "verdict": {"passed": True, "checks": [], "failed": []}})
+    out = capsys.readouterr().out
+    assert "goals replaced unreached (3)" in out
+    assert "2 x C-002: holding: an obstacle blocks the remaining path" in out
+    assert "1 x A-001: refused" in out
 
 
 def test_a_goal_waits_for_a_planner_that_has_a_fresh_joint_state():

@@ -1,0 +1,245 @@
+"""Space-time certification: a *timed* trajectory against where each mover will be.
+
+The path checks (`GraphPlanner`) certify a route against the obstacles now and swept along
+their velocity over a fixed horizon (0.3 s in the bench, 1 s in the node): a static
+picture. A trajectory lasting 2 s was certified against where a sphere could be in the next
+0.3 s, so a sphere that reaches the path's far end after 1.5 s was never looked at. Here the
+arm's state at trajectory time ``t`` is checked against each moving obstacle's predicted
+region at ``t``.
+
+Prediction model (`Prediction`): an obstacle reported with position ``p`` and velocity
+``v``, its data ``age`` s old when planning starts, is at trajectory time ``t`` (horizon
+``tau = age + t``) inside its shape translated by ``v * tau`` and grown by
+
+    rho(tau) = sigma_p + (sigma_v + kappa * |v|) * tau + 0.5 * a_max * tau**2
+
+``sigma_p`` the position error of a report, ``sigma_v`` an absolute and ``kappa`` a relative
+velocity error, ``a_max`` a bound on unmodelled acceleration (0: constant velocity). A
+state keeps more than ``margin + rho(tau) + step_m / 2`` from that region (the exact
+distance to the translated shape, less the growth: a Minkowski sum with a ball, not a
+bigger primitive).
+
+Time resolution: between two checked instants no joint moves more than the planner's
+``resolution`` rad (the rule every segment check follows) and no obstacle's region moves or
+grows by more than ``step_m``; the half step in the margin then covers the region at every
+instant between two checks (each lies within half an interval of a checked one). So the
+instants are dense where the arm or an obstacle is fast and sparse where both are slow.
+
+Static obstacles (reported slower than ``moving_speed_m_s``, the jitter of a tracked box)
+are not checked here: the path checks certify them, at the cost they always had. No rclpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from damon_ros.core import sphere_kernels
+from damon_ros.core.shapes import Shape
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The obstacle prediction model and the check's time resolution (SI units)."""
+
+    position_sigma_m: float = 0.005  # error of a reported position (ideal: noise, rounding)
+    velocity_sigma_m_s: float = 0.05  # absolute error of a reported velocity
+    velocity_sigma_rel: float = 0.1  # relative error of a reported velocity
+    acceleration_m_s2: float = 0.0  # unmodelled acceleration bound (0 = constant velocity)
+    min_age_s: float = 0.033  # data is at least this old (one camera frame) unless told
+    step_m: float = 0.01  # most an obstacle's region changes between checked instants
+    moving_speed_m_s: float = 0.05  # slower reports are static (a tracked box's jitter)
+
+    def growth(self, speed: float, tau: float) -> float:
+        """rho(tau): how far the region has grown ``tau`` s after the report."""
+        return (self.position_sigma_m + (self.velocity_sigma_m_s + self.velocity_sigma_rel
+                                         * speed) * tau + 0.5 * self.acceleration_m_s2 * tau * tau)
+
+    def rate(self, speed: float, tau: float) -> float:
+        """Upper bound on how fast the region moves or grows (m/s) up to ``tau``."""
+        return (speed + self.velocity_sigma_m_s + self.velocity_sigma_rel * speed
+                + self.acceleration_m_s2 * tau)
+
+
+def movers(obstacles: Sequence[tuple[Shape, np.ndarray]],
+           prediction: Prediction) -> tuple[tuple[Shape, np.ndarray], ...]:
+    """The (shape, velocity) pairs the space-time check looks at: the moving ones."""
+    return tuple((s, np.asarray(v, float)) for s, v in obstacles
+                 if float(np.linalg.norm(v)) >= prediction.moving_speed_m_s)
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Where a timed trajectory meets a mover's predicted region."""
+
+    time_s: float  # trajectory time of the first refused instant
+    obstacle: int  # index into the movers
+    q: np.ndarray  # the arm's state then
+    region: Shape  # the mover's shape where it is predicted then (not grown)
+    growth_m: float  # rho at that instant
+
+    def describe(self) -> str:
+        name = self.region.name or f"obstacle {self.obstacle}"
+        return (f"{name} is predicted on the trajectory {self.time_s:.2f} s into it "
+                f"(region grown by {self.growth_m:.3f} m)")
+
+
+def check_instants(times: np.ndarray, positions: np.ndarray, resolution: float,
+                   rate: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """(times, states) to check: the trajectory's samples, subdivided (linearly) where a
+    joint moves more than ``resolution`` or the region more than ``step`` between two, then
+    thinned to the fewest that keep both bounds between consecutive instants."""
+    dq = np.max(np.abs(np.diff(positions, axis=0)), axis=1)
+    dt = np.diff(times)
+    pieces = np.maximum(1, np.maximum(np.ceil(dq / resolution), np.ceil(dt * rate / step)))
+    pieces = pieces.astype(np.int64)
+    return _thinned(*_subdivided(times, positions, pieces), resolution, rate, step)
+
+
+@njit(cache=True)
+def _subdivided(times, positions, pieces):
+    n = int(pieces.sum()) + 1
+    t_out = np.empty(n)
+    q_out = np.empty((n, positions.shape[1]))
+    m = 0
+    for i in range(pieces.shape[0]):
+        for k in range(pieces[i]):
+            f = k / pieces[i]
+            t_out[m] = times[i] + f * (times[i + 1] - times[i])
+            q_out[m] = positions[i] + f * (positions[i + 1] - positions[i])
+            m += 1
+    t_out[m] = times[-1]
+    q_out[m] = positions[-1]
+    return t_out, q_out
+
+
+@njit(cache=True)
+def _thinned(times, positions, resolution, rate, step):
+    keep = np.zeros(times.shape[0], np.bool_)
+    keep[0] = keep[-1] = True
+    last = 0
+    for j in range(1, times.shape[0]):
+        gap_q = np.max(np.abs(positions[j] - positions[last]))
+        if gap_q > resolution or (times[j] - times[last]) * rate > step:
+            keep[j - 1] = True  # the previous state is still within both bounds
+            last = j - 1
+    return times[keep], positions[keep]
+
+
+@njit(cache=True)
+def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, robot_args,
+                   kind, pos, rot, params, hull):
+    """Index of the first instant at which some mover part comes within its required
+    distance (margin + rho(tau) + half step), or -1. Each part is translated by v * tau:
+    its position, and a hull's face rows (corners and plane offset)."""
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    where = np.empty(2, np.int64)
+    moved_pos = pos.copy()
+    moved_hull = hull.copy()
+    for n in range(times.shape[0]):
+        tau = tau0 + times[n]
+        for k in range(kind.shape[0]):
+            dx, dy, dz = velocity[k, 0] * tau, velocity[k, 1] * tau, velocity[k, 2] * tau
+            moved_pos[k, 0], moved_pos[k, 1], moved_pos[k, 2] = (pos[k, 0] + dx, pos[k, 1] + dy,
+                                                                pos[k, 2] + dz)
+            if kind[k] == sphere_kernels.HULL:
+                for r in range(int(params[k, 1]), int(params[k, 2])):
+                    for c in range(3):
+                        moved_hull[r, 3 * c] = hull[r, 3 * c] + dx
+                        moved_hull[r, 3 * c + 1] = hull[r, 3 * c + 1] + dy
+                        moved_hull[r, 3 * c + 2] = hull[r, 3 * c + 2] + dz
+                    moved_hull[r, 12] = hull[r, 12] - (hull[r, 9] * dx + hull[r, 10] * dy
+                                                       + hull[r, 11] * dz)
+            need = required0 + grow_lin[k] * tau + grow_quad * tau * tau
+            d = sphere_kernels._distance_below(
+                Q[n], need + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb,
+                kind[k:k + 1], moved_pos[k:k + 1], rot[k:k + 1], params[k:k + 1], moved_hull,
+                fr, fp, where, need)
+            if d <= need:
+                return n
+    return -1
+
+
+def first_contact(robot, times: np.ndarray, positions: np.ndarray,
+                  moving: Sequence[tuple[Shape, np.ndarray]], margin: float, resolution: float,
+                  prediction: Prediction, age_s: float = 0.0) -> Contact | None:
+    """The first instant of the timed trajectory (``times``, ``positions``) at which the arm
+    comes within ``margin`` of a mover's predicted region (module docstring), or None when
+    it never does. ``robot``: the planner's robot model; the fast (sphere) model runs one
+    compiled loop, the exact meshes one query per instant and mover."""
+    if not moving:
+        return None
+    tau0 = max(age_s, prediction.min_age_s)
+    horizon = tau0 + float(times[-1])
+    speeds = [float(np.linalg.norm(v)) for _, v in moving]
+    rate = max(prediction.rate(s, horizon) for s in speeds)
+    t, Q = check_instants(np.asarray(times, float), np.asarray(positions, float), resolution,
+                          rate, prediction.step_m)
+    required0 = margin + prediction.position_sigma_m + 0.5 * prediction.step_m
+    grow_lin = np.array([prediction.velocity_sigma_m_s + prediction.velocity_sigma_rel * s
+                         for s in speeds])
+    if getattr(robot, "collision", "") == "fast":
+        shapes = tuple(s for s, _ in moving)
+        velocity = np.array([v for _, v in moving], float).reshape(-1, 3)
+        n = int(_first_refused(t, np.ascontiguousarray(Q), tau0, required0, grow_lin,
+                               0.5 * prediction.acceleration_m_s2, velocity,
+                               tuple(robot.spheres.kernel_args),
+                               *sphere_kernels.pack_obstacles(shapes)))
+        if n < 0:
+            return None
+        return _contact(t[n], Q[n], moving, tau0, prediction, robot)
+    for ti, q in zip(t, Q, strict=True):
+        for k, (shape, v) in enumerate(moving):
+            tau = tau0 + ti
+            need = margin + prediction.growth(speeds[k], tau) + 0.5 * prediction.step_m
+            if robot.distances(q[None], [shape.moved_to(shape.position + v * tau)])[0] <= need:
+                return Contact(float(ti), k, q, shape.moved_to(shape.position + v * tau),
+                               prediction.growth(speeds[k], tau))
+    return None
+
+
+def _contact(t: float, q: np.ndarray, moving, tau0: float, prediction: Prediction,
+             robot) -> Contact:
+    """The contact at instant ``t``: the nearest mover there."""
+    tau = tau0 + t
+    regions = [s.moved_to(s.position + v * tau) for s, v in moving]
+    gaps = [float(robot.distances(q[None], [r])[0])
+            - prediction.growth(float(np.linalg.norm(v)), tau)
+            for r, (_, v) in zip(regions, moving, strict=True)]
+    k = int(np.argmin(gaps))
+    return Contact(float(t), k, q, regions[k],
+                   prediction.growth(float(np.linalg.norm(moving[k][1])), tau))
+
+
+def predicted_region(contact: Contact, extra_m: float = 0.0) -> Shape:
+    """The mover's predicted region at the contact, as one obstacle shape for a re-route
+    around where it will be: a sphere, box or cylinder grown by rho (+ ``extra_m``); a
+    point set as is (the margin then has to carry it)."""
+    s, g = contact.region, contact.growth_m + extra_m
+    if s.kind == "sphere":
+        return Shape("sphere", (s.size[0] + g,), s.position, s.orientation, name=s.name)
+    if s.kind == "box":
+        return Shape("box", tuple(np.asarray(s.size) + 2 * g), s.position, s.orientation,
+                     name=s.name)
+    if s.kind == "cylinder":
+        return Shape("cylinder", (s.size[0] + g, s.size[1] + 2 * g), s.position,
+                     s.orientation, name=s.name)
+    return s
+
+
+def warm_up(robot) -> None:
+    """Compile the kernels (or load them from the disk cache) before the first real plan."""
+    if getattr(robot, "collision", "") != "fast":
+        return
+    q = np.zeros((2, 7))
+    q[1, 0] = 0.1
+    for where in ([2.0, 2.0, 2.0], [0.0, 0.0, 0.3]):  # a miss, then a contact at the base
+        probe = ((Shape("sphere", (0.05,), np.array(where)), np.array([0.1, 0.0, 0.0])),
+                 (Shape("points", (), np.array(where), points=np.eye(3) * 0.05),
+                  np.array([0.0, 0.1, 0.0])))
+        first_contact(robot, np.array([0.0, 0.5]), q, probe, 0.01, 0.02, Prediction())
