@@ -30,11 +30,11 @@ default) must select best effort to receive them.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from collections import deque
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import yaml
@@ -45,7 +45,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
 from damon_ros.core.scenario import Scenario, load_scenario
-from damon_ros.perception.camera import Camera, load_camera
+from damon_ros.perception.camera import Camera, camera_file, load_camera
 from damon_ros.ros import topics
 from damon_ros.ros.markers import class_rgba, shape_to_marker
 from damon_ros.ros.node_loop import use_realtime_priority
@@ -69,7 +69,10 @@ PARAMETERS = (
     Param("scenario", "", "scenario file whose obstacles are rendered (required)"),
     Param("fps", 30.0, "frames per second", 0.1, 240.0),
     Param("camera_config", "",
-          "camera file (intrinsics, base_T_camera, mock_render); '' = shipped"),
+          "camera file (intrinsics, base_T_camera, mock_render), a path or a shipped name "
+          "(camera_side.yaml); '' = shipped camera.yaml"),
+    Param("camera_prefix", topics.CAMERA_PREFIX,
+          "topic prefix of this camera (<prefix>/color/image_raw, ...): one per camera"),
     Param("depth_noise_std_m", -1.0,
           "depth noise std (m); < 0: the camera file's mock_render value"),
     Param("dropout", -1.0, "fraction of depth pixels with no return; < 0: the camera file's value"),
@@ -84,6 +87,9 @@ PARAMETERS = (
                                   "only, for runs without perception)"),
     Param("truth_lifetime_frames", 3.0, "lifetime of a ground-truth marker, in frames",
           0.0, 1000.0),
+    Param("sync_stamps", False, "hardware-synchronised cameras (RealSense inter_cam_sync_mode): "
+          "frames at the multiples of 1/fps in ROS time, so that cameras with the same fps "
+          "take theirs at the same instants and the tracker fuses them with no motion slack"),
     Param("realtime_priority", 5,
           "SCHED_FIFO priority of the node's threads, 0: normal scheduling", 0, 99),
 )
@@ -95,7 +101,7 @@ def render_settings(camera_config: str, overrides: dict[str, float]) -> RenderSe
     A real calibration file has no ``mock_render`` section; the shipped settings serve then.
     Overrides with a negative value mean "keep the file's value".
     """
-    path = Path(camera_config) if camera_config else None
+    path = camera_file(camera_config) if camera_config else None
     has_section = path is not None and isinstance(
         data := yaml.safe_load(path.read_text(encoding="utf-8")), dict) and "mock_render" in data
     settings = load_render_settings(path if has_section else None)
@@ -153,19 +159,24 @@ class MockCamera(Node):
         self._render_s: deque[float] = deque([0.5 * self.period], maxlen=30)
         self._frames = 0
         self._overruns = 0
-        self._pub_color = self.create_publisher(Image, topics.COLOR_IMAGE, qos_profile_sensor_data)
-        self._pub_depth = self.create_publisher(Image, topics.DEPTH_IMAGE, qos_profile_sensor_data)
-        self._pub_info = self.create_publisher(CameraInfo, topics.CAMERA_INFO,
-                                               qos_profile_sensor_data)
+        color, depth, info = topics.camera_topics(p["camera_prefix"])
+        self._pub_color = self.create_publisher(Image, color, qos_profile_sensor_data)
+        self._pub_depth = self.create_publisher(Image, depth, qos_profile_sensor_data)
+        self._pub_info = self.create_publisher(CameraInfo, info, qos_profile_sensor_data)
         self._pub_truth = (self.create_publisher(MarkerArray, topics.SIM_OBSTACLES, 10)
                            if p["publish_ground_truth"] else None)
         self.start_time = float(p["scenario_start_time_s"] or clock_seconds(self))
         accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
+        self.sync_stamps = p["sync_stamps"]
+        if self.sync_stamps:  # tick half a period before each instant of the shared grid
+            now = clock_seconds(self)
+            time.sleep((0.5 * self.period - now) % self.period)
         self.create_timer(self.period, self._frame)
         use_realtime_priority(self, p["realtime_priority"])
         s = self.settings
         self.get_logger().info(
-            f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles), "
+            f"scenario {self.scenario.name} ({len(self.scenario.obstacles)} obstacles) on "
+            f"{color}, "
             f"{self.camera.width}x{self.camera.height} at {p['fps']:g} fps, depth noise "
             f"{s.depth_noise_std_m:g} m, dropout {s.dropout:g}, seed {s.seed}, scenario t=0 at "
             f"{self.start_time:.3f} s, time scale {self.time_scale:g}")
@@ -183,6 +194,8 @@ class MockCamera(Node):
         tick = clock_seconds(self)
         predicted = float(np.percentile(self._render_s, 90)) + RENDER_MARGIN_S
         stamp_s = tick + min(predicted, self.period)
+        if self.sync_stamps:  # the next instant of the grid, waited for below
+            stamp_s = math.ceil(stamp_s / self.period - 1e-9) * self.period
         scene = scene_at(self.scenario, self.scenario_time(stamp_s))
         if self.publish_images:
             rgb, depth = render(self.camera, scene, **render_settings_kwargs(self.settings,

@@ -83,6 +83,9 @@ PARAMETERS = (
           "(s; 0 = off, for a setup without perception)", 0.0, 60.0),
     Param("goal_wait_timeout_s", 5.0, "a goal waiting for obstacle data is dropped after "
           "this long (s), never started by surprise later", 0.1, 3600.0),
+    Param("unseen_goal_wait_s", 3.0, "a goal refused only because of the unseen (hidden-"
+          "extent) part of a tracked obstacle waits this long for a better view, tried "
+          "again every 0.2 s, then is dropped (s; 0 = dropped at once)", 0.0, 60.0),
     Param("joint_state_timeout_s", 0.5, "refuse to plan from joint states older than this (s)",
           0.001, 60.0),
     Param("time_budget_s", 0.25, "a route search gives up after this long (s)", 0.001, 10.0),
@@ -94,6 +97,9 @@ PARAMETERS = (
           "scheduling): above the camera and tracker, below the 1 kHz control loops", 0, 99),
 )
 
+
+UNSEEN_RETRY_S = 0.2
+"""s between tries of a goal that waits for a better view (`unseen_goal_wait_s`)."""
 
 REST_RESIDUE = 1e-9
 """rad/s, rad/s²: a trajectory's end is at rest, but a plan from a moving state leaves
@@ -168,6 +174,8 @@ class PlannerNode(Node):
         self.q_stamp = -math.inf
         self.q_measured_at = -math.inf  # the state's header stamp (reception if unset)
         self.last_event = "idle"
+        self.unseen_wait_s = p["unseen_goal_wait_s"]
+        self._unseen_goal: tuple | None = None  # (goal, since, last try): see `_unseen`
         self._to_show = None  # a published route not yet visualised
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
@@ -269,11 +277,66 @@ class PlannerNode(Node):
         with self.deciding:
             obstacles, age = self._perception()
             event = self.runtime.set_goal(q, goal, obstacles, perception_age_s=age, qd_now=qd)
+            self._unseen_goal = None
+            event = self._unseen(event, goal, q)
             self._act(event, received, "goal")
         return event
 
+    def _unseen(self, event, goal, q: np.ndarray):
+        """A refusal caused only by the unseen part of an estimate (`unseen_blockers`) says
+        so, and the goal waits ``unseen_goal_wait_s`` for a better view (`_retry_unseen`);
+        while it waits, a repeated refusal is not logged again (None)."""
+        from damon_ros.perception.unseen import Estimate, unseen_blockers, unseen_reason
+        from damon_ros.planning.reactive import Event
+
+        if event is None or event.kind != "refused" or self.unseen_wait_s <= 0.0:
+            self._unseen_goal = None
+            return event
+        now = clock_seconds(self)
+        seen = self.table.seen_parts(now)
+        estimates = [Estimate(f"{o.ns}#{o.id}", o.shape, seen.get((o.ns, o.id)))
+                     for o in self.table.obstacles(now)]
+        planner = self.runtime.planner
+        names = unseen_blockers(
+            lambda obstacles: planner.resolve_goal(goal, q, obstacles),
+            lambda qq, shape: float(self.robot.distances(qq[None], [shape])[0]),
+            planner.config.margin, estimates)
+        if names is None:
+            self._unseen_goal = None
+            return event
+        reason = unseen_reason(event.reason, names)
+        if self._unseen_goal is None:
+            self._unseen_goal = (goal, now, now)
+            return Event("refused", f"{reason}: waiting up to {self.unseen_wait_s:g} s "
+                         "(unseen_goal_wait_s) for a better view", event.result)
+        _, since, _ = self._unseen_goal
+        if now - since > self.unseen_wait_s:
+            self._unseen_goal = None
+            return Event("refused", f"goal dropped after waiting {now - since:.1f} s for a "
+                         f"better view: {reason}", event.result)
+        return None
+
+    def _retry_unseen(self) -> None:
+        """Plan a goal waiting for a better view again, every 0.2 s, with fresh obstacles."""
+        goal, since, tried = self._unseen_goal
+        now = clock_seconds(self)
+        if now - tried < UNSEEN_RETRY_S or self.runtime.state not in ("idle", "reached"):
+            return
+        q, qd = self._current_state()
+        if q is None:
+            return
+        received = time.perf_counter()
+        with self.deciding:
+            self._unseen_goal = (goal, since, now)
+            obstacles, age = self._perception()
+            event = self.runtime.set_goal(q, goal, obstacles, perception_age_s=age, qd_now=qd)
+            event = self._unseen(event, goal, q)
+            self._act(event, received, "goal")
+
     # ---- the loop ---------------------------------------------------------------------
     def _monitor(self) -> None:
+        if self._unseen_goal is not None:
+            self._retry_unseen()
         self._step(time.perf_counter())
 
     def _step(self, received: float) -> None:
@@ -469,6 +532,7 @@ class PlannerNode(Node):
 
     def _on_stop_service(self, request: Trigger.Request, response: Trigger.Response):
         with self.deciding:
+            self._unseen_goal = None
             self._act(self.runtime.stop("stop requested on ~/stop"), time.perf_counter(),
                       "stop")
         response.success, response.message = True, "arm stopped; goal cleared"

@@ -2,18 +2,24 @@
 `damon_ros.perception.tracking`.
 
 Colour (``rgb8``/``bgr8``) and aligned depth (``16UC1``/``mono16``/``32FC1``) images in,
-paired by stamp (`FrameSynchronizer`), tracked (`Tracker.update`), and published as one
+paired by stamp (`FrameSynchronizer`), tracked (`Tracker.update_camera`), and published as one
 ``visualization_msgs/MarkerArray`` per frame on ``/damon/obstacles`` in the robot base frame:
 one marker per track (shape, pose, scale; ns = colour class, id = track id, stable while the
 track lives; ``lifetime`` = the tracker's ``max_age_s`` so that a consumer forgets an
 obstacle the tracker stopped publishing) and a DELETE marker when a track is dropped. The
 stamp of every marker is the stamp of the image it was seen in.
 
+Several cameras: ``cameras`` lists each camera's topic prefix (``<prefix>/color/image_raw``,
+...) and ``camera_configs`` its camera file (hand-eye pose) in the same order. Each frame pair
+of one camera is fused with the other cameras' latest frames (`Tracker.update_camera`: an
+older frame's bound is grown by how far an obstacle can have moved since) into one obstacle
+per object, whose hidden extent is what no camera sees; one camera is the default.
+
 Intrinsics come from camera_info (frames are dropped, with one log line, until it arrives);
 the extrinsic is the hand-eye calibration ``base_T_camera`` of the camera file, which also
-names the base frame. A bad image (unsupported encoding, size unlike camera_info, short
-data, all-zero depth, a stamp not newer than the last frame's) is dropped with one log line
-per kind of problem, repeated at most every ``warn_every_s`` with a count; the node keeps
+names the base frame (the same for every camera). A bad image (unsupported encoding, size
+unlike camera_info, short data, all-zero depth) is dropped with one log line per kind of
+problem, repeated at most every ``warn_every_s`` with a count; the node keeps
 running. Stamps that jump back by more than the tracker's ``time_jump_s`` (a simulator
 reset, a bag loop) restart pairing and tracking instead.
 
@@ -55,7 +61,7 @@ from damon_ros.ros.images import (
     decode_color,
     decode_depth,
 )
-from damon_ros.ros.markers import class_rgba, delete_marker, shape_to_marker
+from damon_ros.ros.markers import SEEN_SUFFIX, class_rgba, delete_marker, shape_to_marker
 from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, declare_all
@@ -68,8 +74,11 @@ LATENCY_HISTORY = 3000
 PARAMETERS = (
     Param("tracker_config", "", "tracker settings (HSV classes, shape model, tracking); "
                                 "'' = config/tracker.yaml"),
-    Param("camera_config", "", "camera file giving base_T_camera and the base frame; '' = "
-                               "shipped config/camera.yaml (intrinsics come from camera_info)"),
+    Param("cameras", (topics.CAMERA_PREFIX,),
+          "topic prefix of each camera (<prefix>/color/image_raw, ...); fused into one world"),
+    Param("camera_configs", ("",),
+          "camera file of each camera in `cameras` (base_T_camera, base frame), a path or a "
+          "shipped name (camera_side.yaml); '' = config/camera.yaml (intrinsics: camera_info)"),
     Param("sync_tolerance_s", 0.005,
           "colour and depth frames pair when their stamps differ by <= this", 0.0, 1.0),
     Param("queue_size", 10, "unmatched frames held per stream while waiting for the other",
@@ -123,6 +132,8 @@ def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], fr
                      ) -> tuple[MarkerArray, set[tuple[str, int]]]:
     """One ADD marker per (published) track, a DELETE for each one no longer published.
 
+    A track's visible surface goes beside it as ``(color + SEEN_SUFFIX, id)`` (see
+    :mod:`damon_ros.ros.markers`): what the cameras saw, the rest being its hidden extent.
     Returns the array and the keys it shows, which are ``previous`` for the next frame.
     """
     out = MarkerArray()
@@ -133,9 +144,48 @@ def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], fr
         out.markers.append(shape_to_marker(track.shape, track.color, track.id, frame_id, stamp,
                                            lifetime_s, class_rgba(track.color)))
         shown.add((track.color, track.id))
+        if track.seen is not None:
+            out.markers.append(shape_to_marker(track.seen, track.color + SEEN_SUFFIX, track.id,
+                                               frame_id, stamp, lifetime_s,
+                                               class_rgba(track.color, 1.0)))
+            shown.add((track.color + SEEN_SUFFIX, track.id))
     for ns, id in sorted(previous - shown):
         out.markers.append(delete_marker(ns, id, frame_id, stamp))
     return out, shown
+
+
+@dataclass(eq=False)
+class CameraView:
+    """One camera of the tracker: its topics' prefix, calibration, pairing and intrinsics."""
+
+    prefix: str
+    calibration: Camera
+    sync: FrameSynchronizer
+    camera: Camera | None = None  # from the first usable camera_info
+    info_key: tuple | None = None
+    waiting_logged: bool = False
+
+
+def camera_views(prefixes: Sequence[str], configs: Sequence[str], sync_tolerance_s: float,
+                 queue_size: int) -> list[CameraView]:
+    """The cameras of the parameters ``cameras`` and ``camera_configs`` (same length, one
+    base frame, distinct prefixes), refused with a reason otherwise."""
+    prefixes, configs = list(prefixes), list(configs)
+    if not prefixes or len(prefixes) != len(configs):
+        raise ValueError(f"parameters cameras ({len(prefixes)}) and camera_configs "
+                         f"({len(configs)}) must list the same, non-zero number of cameras")
+    if len(set(prefixes)) != len(prefixes):
+        raise ValueError(f"parameter cameras {prefixes} names a camera twice")
+    for prefix in prefixes:
+        topics.camera_topics(prefix)  # refuses an empty one
+    views = [CameraView(p, load_camera(c or None), FrameSynchronizer(sync_tolerance_s,
+                                                                      queue_size))
+             for p, c in zip(prefixes, configs, strict=True)]
+    frames = {v.calibration.base_frame for v in views}
+    if len(frames) > 1:
+        raise ValueError(f"camera_configs give different base frames {sorted(frames)}; the "
+                         "tracker publishes in one")
+    return views
 
 
 @dataclass
@@ -175,23 +225,26 @@ class TrackerNode(Node):
         super().__init__(NAME)
         p = declare_all(self, PARAMETERS)
         self.config = load_tracker_config(p["tracker_config"] or None)
-        self.calibration = load_camera(p["camera_config"] or None)
-        self.base_frame = self.calibration.base_frame
+        self.views = camera_views(p["cameras"], p["camera_configs"], p["sync_tolerance_s"],
+                                  p["queue_size"])
+        self.base_frame = self.views[0].calibration.base_frame
         self.lifetime_s = p["marker_lifetime_s"] or self.config.max_age_s
         self.publish_partial = p["publish_partial"]
-        self.sync = FrameSynchronizer(p["sync_tolerance_s"], p["queue_size"])
         self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         self.stats = LatencyStats.empty()
-        self.tracker: Tracker | None = None  # built from the first usable camera_info
-        self._info_key: tuple | None = None
-        self._waiting_logged = False
+        self.tracker = Tracker(self.views[0].calibration, self.config)
+        self.late_frames = 0  # frames older than one of another camera already tracked
         self._newest_stamp = -math.inf
         self._shown: set[tuple[str, int]] = set()
         self._pub = self.create_publisher(MarkerArray, topics.OBSTACLES, 10)
         qos = qos_profile_sensor_data
-        self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, qos)
-        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_color, qos)
-        self.create_subscription(Image, topics.DEPTH_IMAGE, self._on_depth, qos)
+        for i, view in enumerate(self.views):
+            color, depth, info = topics.camera_topics(view.prefix)
+            self.create_subscription(CameraInfo, info, lambda m, i=i: self._on_info(i, m), qos)
+            self.create_subscription(Image, color, lambda m, i=i: self._on_image(i, m, False),
+                                     qos)
+            self.create_subscription(Image, depth, lambda m, i=i: self._on_image(i, m, True),
+                                     qos)
         if p["stats_period_s"] > 0.0:
             self._stats_started = time.monotonic()
             self._stats_frames = 0
@@ -199,59 +252,55 @@ class TrackerNode(Node):
         use_realtime_priority(self, p["realtime_priority"])
         self.get_logger().info(
             f"tracking {sorted(self.config.colors)} as {self.config.shape}s in "
-            f"{self.base_frame} on {topics.OBSTACLES}, marker lifetime {self.lifetime_s:g} s")
+            f"{self.base_frame} on {topics.OBSTACLES} from {len(self.views)} camera(s) "
+            f"{[v.prefix for v in self.views]}, marker lifetime {self.lifetime_s:g} s")
 
     # -- callbacks
 
-    def _on_info(self, msg: CameraInfo) -> None:
+    def _on_info(self, i: int, msg: CameraInfo) -> None:
+        view = self.views[i]
         key = (msg.width, msg.height, tuple(msg.k), msg.header.frame_id)
-        if key == self._info_key:
+        if key == view.info_key:
             return
+        calibration = view.calibration
         try:
-            camera = camera_from_info(msg, self.calibration)
+            camera = camera_from_info(msg, calibration)
         except ValueError as exc:
-            self.problems.report(str(exc))
+            self.problems.report(f"{view.prefix}: {exc}")
             return
-        self._info_key = key
+        view.info_key = key
         if any(msg.d):
-            self.problems.report(f"camera_info has distortion {list(msg.d)}; the tracker "
-                                 "assumes a rectified image and ignores it")
-        if camera.frame_id != self.calibration.frame_id:
-            self.problems.report(f"camera_info frame {camera.frame_id!r} differs from the "
-                                 f"calibrated {self.calibration.frame_id!r}; using the "
+            self.problems.report(f"{view.prefix}: camera_info has distortion {list(msg.d)}; the "
+                                 "tracker assumes a rectified image and ignores it")
+        if camera.frame_id != calibration.frame_id:
+            self.problems.report(f"{view.prefix}: camera_info frame {camera.frame_id!r} differs "
+                                 f"from the calibrated {calibration.frame_id!r}; using the "
                                  "calibration's base_T_camera")
-        if self.tracker is None:
-            self.tracker = Tracker(camera, self.config)
-        else:
-            self.tracker.camera = camera  # tracks live in the base frame: they stay valid
+        view.camera = camera  # tracks live in the base frame: they stay valid
         K = camera.K
-        self.get_logger().info(f"camera_info: {camera.width}x{camera.height}, fx {K[0, 0]:g} "
-                               f"fy {K[1, 1]:g} cx {K[0, 2]:g} cy {K[1, 2]:g}")
+        self.get_logger().info(f"{view.prefix} camera_info: {camera.width}x{camera.height}, fx "
+                               f"{K[0, 0]:g} fy {K[1, 1]:g} cx {K[0, 2]:g} cy {K[1, 2]:g}")
 
-    def _on_color(self, msg: Image) -> None:
-        self._on_image(msg, depth=False)
-
-    def _on_depth(self, msg: Image) -> None:
-        self._on_image(msg, depth=True)
-
-    def _on_image(self, msg: Image, depth: bool) -> None:
-        if self.tracker is None:
-            if not self._waiting_logged:
-                self._waiting_logged = True
-                self.get_logger().warning(f"no camera_info on {topics.CAMERA_INFO} yet: dropping "
-                                          "frames until it arrives")
+    def _on_image(self, i: int, msg: Image, depth: bool) -> None:
+        view = self.views[i]
+        if view.camera is None:
+            if not view.waiting_logged:
+                view.waiting_logged = True
+                info = topics.camera_topics(view.prefix)[2]
+                self.get_logger().warning(f"no camera_info on {info} yet: dropping frames until "
+                                          "it arrives")
             return
         stamp = stamp_seconds(msg.header.stamp)
         self._check_clock(stamp)
         try:
-            image = decode_image(msg, self.tracker.camera, depth)
-            add = self.sync.add_depth if depth else self.sync.add_color
+            image = decode_image(msg, view.camera, depth)
+            add = view.sync.add_depth if depth else view.sync.add_color
             pairs = add(stamp, (image, msg.header.stamp))
         except ValueError as exc:
             self.problems.report(f"dropped a frame: {exc}")
             return
         for pair in pairs:
-            self._track(pair.color, pair.depth)
+            self._track(i, pair.color, pair.depth)
 
     def _check_clock(self, stamp: float) -> None:
         """Restart pairing when stamps jump back (simulation reset, bag loop).
@@ -262,17 +311,23 @@ class TrackerNode(Node):
         if stamp < self._newest_stamp - self.config.time_jump_s:
             self.get_logger().info(f"image stamps jumped back by {self._newest_stamp - stamp:.3f}"
                                    " s: restarting colour/depth pairing")
-            self.sync = FrameSynchronizer(self.sync.tolerance_s, self.sync.queue_size)
+            for view in self.views:
+                view.sync = FrameSynchronizer(view.sync.tolerance_s, view.sync.queue_size)
             self._newest_stamp = stamp
         self._newest_stamp = max(self._newest_stamp, stamp)
 
-    def _track(self, color: tuple[np.ndarray, Time], depth: tuple[np.ndarray, Time]) -> None:
+    def _track(self, i: int, color: tuple[np.ndarray, Time],
+               depth: tuple[np.ndarray, Time]) -> None:
         started = time.perf_counter()
         rgb, stamp = color
         try:
-            tracks = self.tracker.update(rgb, depth[0], stamp_seconds(stamp))
+            tracks = self.tracker.update_camera(i, self.views[i].camera, rgb, depth[0],
+                                                stamp_seconds(stamp))
         except ValueError as exc:
             self.problems.report(f"dropped a frame: {exc}")
+            return
+        if tracks is None:  # older than another camera's frame: kept for fusion only
+            self.late_frames += 1
             return
         markers, self._shown = obstacle_markers(tracks, self._shown, self.base_frame, stamp,
                                                 self.lifetime_s, self.publish_partial)
@@ -285,8 +340,10 @@ class TrackerNode(Node):
         now = time.monotonic()
         fps = (self.stats.frames - self._stats_frames) / max(now - self._stats_started, 1e-9)
         self._stats_started, self._stats_frames = now, self.stats.frames
+        dropped = sum(v.sync.dropped for v in self.views)
+        late = f", {self.late_frames} late frames fused only" if len(self.views) > 1 else ""
         self.get_logger().info(f"{fps:.1f} frames/s tracked; {self.stats.summary()}; "
-                               f"{self.sync.dropped} unpaired frames dropped so far")
+                               f"{dropped} unpaired frames dropped so far{late}")
 
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: the run's statistics in one line."""

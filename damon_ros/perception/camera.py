@@ -138,10 +138,33 @@ def camera_from_dict(data: dict, source: str = "<camera>") -> Camera:
         raise ValueError(f"{source}: camera: {exc}") from exc
 
 
+def camera_file(name: str | os.PathLike | None) -> Path:
+    """The camera file ``name``: a path, or the name of a shipped one (``camera_side.yaml``,
+    found in the installed share folder too); None or "" = ``config/camera.yaml``."""
+    if not name:
+        return config_file("camera.yaml")
+    path = Path(name)
+    if path.is_file() or path.parent != Path("."):
+        return path
+    try:
+        return config_file(str(name))
+    except FileNotFoundError:
+        return path  # read_yaml_section names it: "cannot be read"
+
+
 def load_camera(path: str | os.PathLike | None = None) -> Camera:
-    """The calibrated camera of ``path``, or of the shipped ``config/camera.yaml``."""
-    path = config_file("camera.yaml") if path is None else Path(path)
+    """The calibrated camera of ``path`` (see `camera_file`), or of ``config/camera.yaml``."""
+    path = camera_file(path)
     return camera_from_dict(read_yaml_section(path, "camera"), str(path))
+
+
+def load_cameras(files: str | Sequence[str]) -> list[Camera]:
+    """Several cameras, from a comma-separated list of camera files (see `camera_file`) or
+    a sequence of them: ``"camera.yaml,camera_side.yaml"`` is the front and side pair."""
+    names = [f.strip() for f in files.split(",")] if isinstance(files, str) else list(files)
+    if not names or not all(names):
+        raise ValueError(f"camera list {files!r} must name one or more camera files")
+    return [load_camera(name) for name in names]
 
 
 def to_camera_frame(camera: Camera, points_base: np.ndarray) -> np.ndarray:

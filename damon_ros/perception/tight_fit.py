@@ -89,6 +89,26 @@ def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
 
 
+def _percentiles_1_99(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.percentile(values, [1, 99], axis=0)`` (linear interpolation) by one partition:
+    the same order statistics and interpolation, without percentile's generic overhead
+    (~0.1 ms a call on a box's points)."""
+    n = len(values)
+    lows, highs, weights = [], [], []
+    for q in (0.01, 0.99):
+        index = q * (n - 1)
+        low = int(math.floor(index))
+        lows.append(low)
+        highs.append(min(low + 1, n - 1))
+        weights.append(index - low)
+    part = np.partition(values, sorted(set(lows + highs)), axis=0)
+    out = []
+    for low, high, w in zip(lows, highs, weights, strict=True):
+        a, b = part[low], part[high]
+        out.append(a + (b - a) * w if w < 0.5 else b - (b - a) * (1.0 - w))
+    return out[0], out[1]
+
+
 def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
     """Distance between neighbouring samples on the image plane at ``depth``."""
     return config.downsample * depth / camera.K[0, 0]
@@ -109,7 +129,7 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
         local = points @ axes
         # Depth noise spreads a face's points over several sigma; the face test is against
         # robust planes (percentiles), the bound against the extremes.
-        robust_low, robust_high = np.percentile(local, [1.0, 99.0], axis=0)
+        robust_low, robust_high = _percentiles_1_99(local)
         near_low = np.abs(local - robust_low) <= tol
         near_high = np.abs(local - robust_high) <= tol
         if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
@@ -208,40 +228,78 @@ step, around the best of the previous one; the last step bounds its error."""
 MAX_FIT_POINTS = 400
 
 
-def _fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float, float] | None:
-    """Least-squares circle (centre, radius, rms of |p - c| - r) through 2-D points."""
-    a = np.column_stack([2.0 * xy, np.ones(len(xy))])
-    sol, *_ = np.linalg.lstsq(a, (xy * xy).sum(axis=1), rcond=None)
-    centre = sol[:2]
-    r2 = float(sol[2] + centre @ centre)
-    if not r2 > 0.0:
-        return None
-    radius = math.sqrt(r2)
-    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - radius) ** 2)))
-    return centre, radius, rms
-
-
 def _refine_circle(xy: np.ndarray, centre: np.ndarray, radius: float,
                    iterations: int = 5) -> tuple[np.ndarray, float, float]:
     """Geometric circle fit (Gauss-Newton on |p - c| - r) from an algebraic start: the
     algebraic fit of a short noisy arc comes out several millimetres too small."""
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
     for _ in range(iterations):
-        diff = xy - centre
-        dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-        jac = np.column_stack([-diff / dist[:, None], -np.ones(len(xy))])
-        step, *_ = np.linalg.lstsq(jac, -(dist - radius), rcond=None)
+        dx, dy = x - centre[0], y - centre[1]
+        dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-9)
+        jac = np.column_stack([-dx / dist, -dy / dist, -np.ones(len(x))])
+        # the 3 x 3 normal equations (lstsq's SVD cost 80 us an iteration)
+        step = np.linalg.solve(jac.T @ jac, jac.T @ (radius - dist))
         centre, radius = centre + step[:2], radius + float(step[2])
-    rms = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - radius) ** 2)))
+    dx, dy = x - centre[0], y - centre[1]
+    rms = float(np.sqrt(np.mean((np.sqrt(dx * dx + dy * dy) - radius) ** 2)))
     return centre, radius, rms
 
 
 def _frame(axis: np.ndarray) -> np.ndarray:
     """Columns u, v, axis: a right-handed frame whose third axis is ``axis``."""
-    axis = axis / np.linalg.norm(axis)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(axis, helper)
-    u /= np.linalg.norm(u)
-    return np.column_stack([u, np.cross(axis, u), axis])
+    return _frames(np.asarray(axis, dtype=float)[None])[0]
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of K x 3 arrays (np.cross costs ~30 us of overhead a call)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+
+
+def _frames(axes: np.ndarray) -> np.ndarray:
+    """`_frame` of each row of ``axes`` (K x 3) at once: K x 3 x 3."""
+    axes = axes / np.sqrt((axes * axes).sum(axis=1))[:, None]
+    helper = np.zeros_like(axes)
+    away = np.abs(axes[:, 0]) < 0.9
+    helper[away, 0], helper[~away, 1] = 1.0, 1.0
+    u = _cross_rows(axes, helper)
+    u /= np.sqrt((u * u).sum(axis=1))[:, None]
+    return np.stack([u, _cross_rows(axes, u), axes], axis=2)
+
+
+def _fit_circles(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares circles through K sets of 2-D points at once (``x``, ``y``: N x K,
+    column k one set): centres (K x 2), radii (K; NaN where the fit has none) and the rms
+    of ``|p - c| - r``.
+
+    The algebraic fit ``|p|^2 = 2 p.c + (r^2 - |c|^2)``, solved by its 3 x 3 normal
+    equations built from moments (well conditioned: the caller's points are centred), all
+    K in one batched solve: the axis search's 75 fits took 6-19 ms one by one, ~0.3 ms so.
+    """
+    n = float(len(x))
+    xx, yy = x * x, y * y
+    rhs = xx + yy
+    sx, sy = x.sum(axis=0), y.sum(axis=0)
+    sxx, syy, sxy = xx.sum(axis=0), yy.sum(axis=0), (x * y).sum(axis=0)
+    normal = np.empty((x.shape[1], 3, 3))
+    normal[:, 0, 0], normal[:, 1, 1], normal[:, 2, 2] = 4 * sxx, 4 * syy, n
+    normal[:, 0, 1] = normal[:, 1, 0] = 4 * sxy
+    normal[:, 0, 2] = normal[:, 2, 0] = 2 * sx
+    normal[:, 1, 2] = normal[:, 2, 1] = 2 * sy
+    right = np.column_stack([2 * (x * rhs).sum(axis=0), 2 * (y * rhs).sum(axis=0),
+                             rhs.sum(axis=0)])
+    sol = np.linalg.solve(normal, right[..., None])[..., 0]
+    cx, cy = sol[:, 0], sol[:, 1]
+    r2 = sol[:, 2] + cx * cx + cy * cy
+    radii = np.sqrt(np.where(r2 > 0.0, r2, np.nan))
+    dist = np.sqrt((x - cx) ** 2 + (y - cy) ** 2)
+    rms = np.sqrt(np.mean((dist - radii) ** 2, axis=0))
+    return sol[:, :2], radii, rms
+
+
+_GRID = np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)
+"""The 5 x 5 grid of tilts of `_best_axis`, in steps."""
 
 
 def _best_axis(points: np.ndarray) -> tuple[np.ndarray, tuple] | None:
@@ -249,17 +307,17 @@ def _best_axis(points: np.ndarray) -> tuple[np.ndarray, tuple] | None:
     centred = points - points.mean(axis=0)
     _, vectors = np.linalg.eigh(centred.T @ centred)
     frame, best = _frame(vectors[:, 2]), None  # start: the principal direction
+    k_all = len(_GRID)
     for step in AXIS_STEPS_RAD:
-        base, found = frame, None
-        for a in np.arange(-2, 3) * step:
-            for b in np.arange(-2, 3) * step:
-                candidate = _frame(base @ np.array([math.tan(a), math.tan(b), 1.0]))
-                circle = _fit_circle(centred @ candidate[:, :2])
-                if circle is not None and (found is None or circle[2] < found[1][2]):
-                    found = (candidate, circle)
-        if found is None:
+        tilts = np.column_stack([np.tan(_GRID * step), np.ones(k_all)])
+        candidates = _frames(tilts @ frame.T)  # base @ [tan a, tan b, 1] for each tilt
+        # every candidate's u and v at once: N x 2K coordinates in one product
+        uv = centred @ np.concatenate([candidates[:, :, 0], candidates[:, :, 1]]).T
+        centres, radii, rms = _fit_circles(uv[:, :k_all], uv[:, k_all:])
+        if not np.isfinite(radii).any():
             return None
-        frame, best = found
+        k = int(np.argmin(np.where(np.isfinite(radii), rms, np.inf)))
+        frame, best = candidates[k], (centres[k], float(radii[k]), float(rms[k]))
     return frame, best
 
 

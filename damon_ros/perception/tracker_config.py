@@ -27,7 +27,9 @@ _LOWER_BOUNDS: tuple[tuple[tuple[str, ...], str, Callable[[Any], bool]], ...] = 
       "min_depth_m", "surface_margin_m", "static_speed_mps"), ">= 0", lambda v: v < 0),
     (("max_depth_m", "mad_k", "mad_floor_m", "sphere_rms_ratio", "sphere_width_ratio",
       "gate_m", "max_age_s", "velocity_window_s", "time_jump_s", "face_tolerance_m",
-      "static_hold_s", "moving_speed_mps", "moving_shift_m"), "> 0", lambda v: not v > 0),
+      "static_hold_s", "moving_speed_mps", "moving_shift_m", "max_speed_mps"), "> 0",
+     lambda v: not v > 0),
+    (("fusion_window_s",), ">= 0", lambda v: v < 0),
 )
 """``(fields, bound, violates)``: the numeric fields in the order they are checked, the bound
 named in the error, and the test of a value that breaks it."""
@@ -68,6 +70,8 @@ class TrackerConfig:
     static_hold_s: float = 0.25
     moving_speed_mps: float = 0.08
     moving_shift_m: float = 0.02
+    fusion_window_s: float = 0.05
+    max_speed_mps: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.colors:

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from damon_ros.core.shapes import Shape
-from damon_ros.perception.camera import Camera
+from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
@@ -68,6 +68,8 @@ class Detection(NamedTuple):
 
     ``partial``: the blob touches the image border or a nearer surface borders it, so part of
     the obstacle may be hidden and the bound is only a bound of what is visible.
+    ``seen``: the visible surface alone (base frame; :func:`seen_part`): what the cameras
+    saw of the object; the rest of the bound is the hidden extent that no camera saw.
     """
 
     color: str
@@ -76,12 +78,43 @@ class Detection(NamedTuple):
     partial: bool
     points: int
     area_px: int
+    seen: Shape | None = None
+    surface: np.ndarray | None = None
+    """The visible points themselves (base frame, N x 3): fusion checks every other view's
+    bound against them (`fusion.fuse`)."""
+
+
+_EXTREMES = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                      if (x, y, z) != (0, 0, 0)], dtype=float)
+_EXTREMES /= np.linalg.norm(_EXTREMES, axis=1, keepdims=True)
+
+
+def seen_part(points_base: np.ndarray, name: str = "") -> Shape:
+    """The visible surface as a point set: the points extreme along 26 directions (its hull
+    lies inside the hull of all the points, and is close to it; a few dozen points keep the
+    marker small). It tells a refusal caused by what was seen from one caused by the hidden
+    extent (:mod:`damon_ros.perception.unseen`); it bounds nothing."""
+    points = np.asarray(points_base, dtype=float).reshape(-1, 3)
+    scores = _EXTREMES @ np.ascontiguousarray(points.T)  # 26 x N: argmax along rows
+    chosen = points[np.unique(np.argmax(scores, axis=1))]
+    mid = 0.5 * (chosen.min(axis=0) + chosen.max(axis=0))
+    return Shape("points", (), mid, points=chosen - mid, name=name)
+
+
+def _union(parts: Sequence[Shape | None], name: str) -> Shape | None:
+    """The seen parts of several views of one object, as one point set."""
+    known = [p for p in parts if p is not None]
+    if not known:
+        return None
+    return seen_part(np.vstack([p.position + p.points for p in known]), name)
 
 
 def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.ndarray,
-           segmenter: Segmenter | None = None) -> list[Detection]:
-    """All obstacles of one frame (no tracking): segment, deproject, bound."""
-    check_images(camera, rgb, depth)
+           segmenter: Segmenter | None = None, checked: bool = False) -> list[Detection]:
+    """All obstacles of one frame (no tracking): segment, deproject, bound. ``checked``:
+    the caller ran `check_images` already (its all-zero test reads the whole depth image)."""
+    if not checked:
+        check_images(camera, rgb, depth)
     segmenter = Segmenter(config) if segmenter is None else segmenter
     found = []
     for blob in segmenter.blobs(rgb, depth):
@@ -90,12 +123,18 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
             continue
         estimate = estimate_shape(camera, points, config, name=blob.color,
                                   partial=blob.partial)
+        surface = to_base_frame(camera, points)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
-                               len(points), blob.area_px))
+                               len(points), blob.area_px, seen_part(surface, blob.color),
+                               surface))
     return found
 
 
 # --- tracking --------------------------------------------------------------------------------
+
+SAME_INSTANT_S = 1e-3
+"""Frames of different cameras this close in time are of one instant (hardware-synchronised
+cameras stamp alike to well within it): fused with no motion slack."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,7 +143,8 @@ class Track:
 
     ``shape`` is the last observed bounding shape (not extrapolated: a consumer that wants a
     prediction uses ``velocity`` and ``last_seen``); ``age`` is seconds since first seen;
-    ``hits`` counts the frames it was seen in; ``partial`` is the last detection's flag.
+    ``hits`` counts the frames it was seen in; ``partial`` is the last detection's flag;
+    ``seen`` the last detection's visible surface (`Detection`).
     """
 
     id: int
@@ -115,6 +155,7 @@ class Track:
     age: float
     hits: int
     partial: bool = False
+    seen: Shape | None = None
 
 
 @dataclass(eq=False)
@@ -129,6 +170,7 @@ class _TrackState:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     hits: int = 0
     partial: bool = False
+    seen: Shape | None = None
 
     def predict(self, stamp: float) -> np.ndarray:
         return self.shape.position + self.velocity * (stamp - self.last_seen)
@@ -142,6 +184,7 @@ class _TrackState:
         shape = detection.shape
         self.shape = shape
         self.partial = detection.partial
+        self.seen = detection.seen
         self.last_seen = stamp
         self.hits += 1
         velocity = self.motion.add(stamp, shape.position)
@@ -150,7 +193,7 @@ class _TrackState:
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,
-                     self.last_seen - self.first_seen, self.hits, self.partial)
+                     self.last_seen - self.first_seen, self.hits, self.partial, self.seen)
 
 
 class Tracker:
@@ -164,11 +207,15 @@ class Tracker:
         self._tracks: list[_TrackState] = []
         self._next_id = 0
         self._last_stamp: float | None = None
+        self._views: dict[int, tuple[float, list[Detection]]] = {}  # see `update_camera`
+        self._at_last: set[int] = set()  # the views of the instant tracked last
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up, so an old id never means a new thing)."""
         self._tracks = []
         self._last_stamp = None
+        self._views = {}
+        self._at_last = set()
 
     @property
     def tracks(self) -> list[Track]:
@@ -191,7 +238,7 @@ class Tracker:
         stamp_s = float(stamp_s)
         check_images(self.camera, rgb, depth)
         self._check_stamp(stamp_s)
-        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter)
+        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter, True)
         return self._track(stamp_s)
 
     def update_views(self, cameras: Sequence[Camera], frames: Sequence[tuple[np.ndarray,
@@ -204,16 +251,62 @@ class Tracker:
         for camera, (rgb, depth) in zip(cameras, frames, strict=True):
             check_images(camera, rgb, depth)
         self._check_stamp(stamp_s)
-        views = [detect(c, self.config, rgb, depth, self.segmenter)
+        views = [detect(c, self.config, rgb, depth, self.segmenter, True)
                  for c, (rgb, depth) in zip(cameras, frames, strict=True)]
-        self.detections = []
-        for color in sorted({d.color for view in views for d in view}):
-            per_view = [[(d.shape, d.partial) for d in view if d.color == color]
-                        for view in views]
-            for shape, partial in fuse(per_view, self.config.gate_m):
-                self.detections.append(Detection(color, shape, shape.kind == "sphere",
-                                                 partial, 0, 0))
+        self.detections = self._fused(views, [0.0] * len(views), anchored=False)
         return self._track(stamp_s)
+
+    def update_camera(self, view: int, camera: Camera, rgb: np.ndarray, depth: np.ndarray,
+                      stamp_s: float) -> list[Track] | None:
+        """One frame of camera ``view`` among several (the tracker node, frames as they come).
+
+        Its detections are fused with each other camera's latest ones that are at most
+        ``fusion_window_s`` older, those grown by ``max_speed_mps`` times their age so that
+        they still contain the object now (:func:`fusion.fuse`, anchored on this frame:
+        an object only another camera sees is tracked from that camera's frames). Cameras
+        synchronised in hardware stamp their frames alike: a frame of the instant just
+        tracked (within `SAME_INSTANT_S`) that was not part of it is fused with it and
+        tracked again at that instant, with no motion slack. Any other frame not newer than
+        the last one tracked (frames of different cameras arrive out of order) is not
+        tracked but kept for fusing later frames: then None is returned.
+        """
+        stamp_s = float(stamp_s)
+        check_images(camera, rgb, depth)
+        last = self._last_stamp
+        older = (last is not None and math.isfinite(stamp_s)
+                 and last - self.config.time_jump_s <= stamp_s <= last)
+        same_instant = older and stamp_s >= last - SAME_INSTANT_S and view not in self._at_last
+        if not older:
+            self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
+        found = detect(camera, self.config, rgb, depth, self.segmenter, True)
+        self._views[view] = (stamp_s, found)
+        if older and not same_instant:
+            return None
+        now = last if same_instant else stamp_s
+        others = [(s, d) for v, (s, d) in sorted(self._views.items())
+                  if v != view and 0.0 <= now - s <= self.config.fusion_window_s]
+        slack = [self.config.max_speed_mps * (now - s) for s in [stamp_s] + [s for s, _ in others]]
+        self.detections = self._fused([found] + [d for _, d in others], slack, anchored=True)
+        self._at_last = {v for v, (s, _) in self._views.items()
+                         if now - SAME_INSTANT_S <= s <= now}
+        return self._track(now)
+
+    def _fused(self, views: list[list[Detection]], slack: list[float],
+               anchored: bool) -> list[Detection]:
+        """Per colour class, the detections of several views fused (:func:`fusion.fuse`)."""
+        if len(views) == 1:
+            return list(views[0])
+        out = []
+        for color in sorted({d.color for view in views for d in view}):
+            mine = [[d for d in view if d.color == color] for view in views]
+            per_view = [[(d.shape, d.partial) for d in view] for view in mine]
+            seen = [[d.surface for d in view] for view in mine]
+            for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
+                                                seen, self.config.face_tolerance_m):
+                seen = _union([mine[v][i].seen for v, i in members], color)
+                out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0,
+                                     seen))
+        return out
 
     def _track(self, stamp_s: float) -> list[Track]:
         for color in {d.color for d in self.detections} | {t.color for t in self._tracks}:

@@ -32,6 +32,11 @@ busy executor), not evidence that the obstacle left; forgetting it there let the
 route the arm through a box it had seen 0.5 s before (camera demo, D-001). The gap itself
 is the perception timeout's to handle (`last_update`). No rclpy here: only message classes,
 so the planner core can use it untouched.
+
+What the cameras saw of an obstacle: the tracker adds, per obstacle ``(ns, id)``, a POINTS
+marker ``(ns + SEEN_SUFFIX, id)`` holding its visible surface; the rest of the obstacle is
+the hidden extent no camera saw. ``ObstacleTable`` keeps those apart (they are not
+obstacles; `seen_parts`), so that a refusal can tell which it is caused by.
 """
 
 from __future__ import annotations
@@ -54,6 +59,9 @@ from damon_ros.ros.stamps import stamp_seconds, to_duration, to_stamp
 MAX_SIZE_M = 3.0
 """Largest size accepted on any axis: nothing that large fits in a Panda's workspace, so a
 bigger value is a unit error (mm for m) or garbage, not an obstacle."""
+
+SEEN_SUFFIX = "/seen"
+"""Namespace suffix of the markers that show what the cameras saw of an obstacle."""
 
 QUATERNION_TOLERANCE = 1e-3
 """A marker quaternion must have a norm within this of 1 (rviz rejects worse ones too)."""
@@ -317,6 +325,7 @@ class ObstacleTable:
         self.frame_id = frame_id
         self.velocity_window_s = float(velocity_window_s)
         self._entries: dict[tuple[str, int], _Entry] = {}
+        self._seen: dict[tuple[str, int], Shape] = {}  # keyed by the obstacle's (ns, id)
         self.last_update = -math.inf  # receive time of the last array that said anything valid
 
     def __len__(self) -> int:
@@ -343,6 +352,9 @@ class ObstacleTable:
 
     def _apply_one(self, marker: Marker, now: float) -> None:
         key = (marker.ns, int(marker.id))
+        if marker.ns.endswith(SEEN_SUFFIX):
+            self._apply_seen(marker, (marker.ns.removesuffix(SEEN_SUFFIX), key[1]))
+            return
         if marker.action == Marker.DELETEALL:
             self._entries = {k: e for k, e in self._entries.items()
                              if marker.ns and k[0] != marker.ns}
@@ -353,6 +365,22 @@ class ObstacleTable:
         else:
             raise ProblemError(f"{_label(marker)}: unknown action {marker.action}",
                                "marker.action_unknown")
+
+    def _apply_seen(self, marker: Marker, key: tuple[str, int]) -> None:
+        """A visible-surface marker: kept beside its obstacle, never an obstacle itself."""
+        if marker.action == Marker.ADD:
+            self._seen[key] = marker_to_shape(marker, self.frame_id)
+        elif marker.action in (Marker.DELETE, Marker.DELETEALL):
+            self._seen.pop(key, None)
+        else:
+            raise ProblemError(f"{_label(marker)}: unknown action {marker.action}",
+                               "marker.action_unknown")
+
+    def seen_parts(self, now: float) -> dict[tuple[str, int], Shape]:
+        """The visible surface of each live obstacle whose tracker published one."""
+        live = {(o.ns, o.id) for o in self.obstacles(now)}
+        self._seen = {k: v for k, v in self._seen.items() if k in live}
+        return dict(self._seen)
 
     def _add(self, key: tuple[str, int], marker: Marker, now: float) -> None:
         shape = marker_to_shape(marker, self.frame_id)

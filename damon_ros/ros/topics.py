@@ -21,9 +21,21 @@ PLAN_SERVICE = "~/plan"
 STOP_SERVICE = "~/stop"
 
 OBSTACLES = "damon/obstacles"
-COLOR_IMAGE = "camera/camera/color/image_raw"
-DEPTH_IMAGE = "camera/camera/aligned_depth_to_color/image_raw"
-CAMERA_INFO = "camera/camera/color/camera_info"
+CAMERA_PREFIX = "camera/camera"
+"""realsense2_camera's ``<camera_namespace>/<camera_name>``; each camera has its own."""
+
+
+def camera_topics(prefix: str = CAMERA_PREFIX) -> tuple[str, str, str]:
+    """Colour, aligned depth and camera_info topics of the camera publishing under
+    ``prefix`` (one mock_camera or RealSense driver per camera, each with its own prefix)."""
+    prefix = prefix.rstrip("/")  # a leading "/" makes the topics absolute, as in ROS
+    if not prefix.strip("/"):
+        raise ValueError("a camera topic prefix must not be empty")
+    return (f"{prefix}/color/image_raw", f"{prefix}/aligned_depth_to_color/image_raw",
+            f"{prefix}/color/camera_info")
+
+
+COLOR_IMAGE, DEPTH_IMAGE, CAMERA_INFO = camera_topics()
 
 SIM_OBSTACLES = "damon/sim/obstacles"
 """Ground truth of the mock camera's scene (evaluation only)."""

@@ -21,6 +21,7 @@ import numpy as np
 
 from damon_ros.core.kinematics import pose_error
 from damon_ros.core.scenario import Scenario
+from damon_ros.perception.unseen import Estimate, unseen_blockers, unseen_reason
 from damon_ros.planning.follower import TrajectoryFollower
 from damon_ros.planning.graph_planner import PoseGoal
 from damon_ros.planning.reactive import Event, ReactivePlanner
@@ -36,6 +37,9 @@ class SimConfig:
     hold_time: float = 0.2  # s the goal must be held (velocities ~0) to count as reached
     settle_speed: float = 0.02  # rad/s below which the arm counts as still
     perception: str = "ideal"  # ideal | camera
+    cameras: tuple[str, ...] = ("camera.yaml",)  # camera files of the camera perception
+    unseen_goal_wait_s: float = 3.0  # as the planner node's parameter of that name
+    unseen_retry_s: float = 0.2
     seed: int = 0
 
 
@@ -75,22 +79,23 @@ class _Perception:
         self.config = config
         self.rng = np.random.default_rng(config.seed)
         self.tracker = None
+        self.tracks: list = []
         if config.perception == "camera":
-            from damon_ros.perception.camera import load_camera
+            from damon_ros.perception.camera import load_cameras
             from damon_ros.perception.tracking import Tracker
             from damon_ros.simulation.renderer import render, scene_at
 
-            self.camera = load_camera()
-            self.tracker = Tracker(self.camera)
+            self.cameras = load_cameras(config.cameras)
+            self.tracker = Tracker(self.cameras[0])
             self._render, self._scene_at = render, scene_at
 
     def observe(self, t: float) -> list:
         seen_at = max(0.0, t - self.config.perception_latency)
         if self.tracker is not None:
-            rgb, depth = self._render(self.camera, self._scene_at(self.scenario, seen_at),
-                                      rng=self.rng)
-            tracks = self.tracker.update(rgb, depth, seen_at)
-            return [(tr.shape, tr.velocity) for tr in tracks]
+            scene = self._scene_at(self.scenario, seen_at)  # synchronised cameras
+            frames = [self._render(camera, scene, rng=self.rng) for camera in self.cameras]
+            self.tracks = self.tracker.update_views(self.cameras, frames, seen_at)
+            return [(tr.shape, tr.velocity) for tr in self.tracks]
         out = []
         for obstacle in self.scenario.obstacles:  # a compound: each exact part
             offset = np.zeros(3)
@@ -100,6 +105,18 @@ class _Perception:
             out.extend((shape.moved_to(shape.position + offset), velocity)
                        for shape in obstacle.parts_at(seen_at))
         return out
+
+
+    def unseen(self, runtime: ReactivePlanner, goal: PoseGoal, q: np.ndarray) -> list[str] | None:
+        """The tracks whose unseen part alone blocks a refused goal (`unseen_blockers`)."""
+        if not self.tracks:
+            return None
+        planner = runtime.planner
+        estimates = [Estimate(f"{tr.color}#{tr.id}", tr.shape, tr.seen) for tr in self.tracks]
+        return unseen_blockers(
+            lambda obstacles: planner.resolve_goal(goal, q, obstacles),
+            lambda qq, shape: float(planner.robot.distances(qq[None], [shape])[0]),
+            planner.config.margin, estimates)
 
 
 def pose_goal(scenario: Scenario) -> PoseGoal:
@@ -148,16 +165,32 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     t0 = time.perf_counter()
     event = runtime.set_goal(q, goal, perception.observe(t))
     record.planning_time_s = time.perf_counter() - t0
+    waiting = None  # (since, reason): the goal waits for a better view (`_unseen_refusal`)
     if event.kind == "refused":
-        record.error = f"goal refused: {event.reason}"
-        return _finish(record, runtime, scenario, t)
+        waiting = _unseen_refusal(event, perception, runtime, goal, q, t, None, config)
+        if waiting is None:
+            record.error = f"goal refused: {event.reason}"
+            return _finish(record, runtime, scenario, t)
     busy_until = decide(event, t)
     follower.hold(sim.q)
     while t < scenario.time_limit:
         act(t)
         if t >= next_camera:
             next_camera += config.camera_period
-            if t >= busy_until:  # the planner takes the newest frame once it is free
+            if waiting is not None and t >= busy_until and t - waiting[2] >= config.unseen_retry_s:
+                event = runtime.set_goal(sim.q, goal, perception.observe(t), qd_now=sim.qd)
+                if event.kind == "refused":
+                    waiting = _unseen_refusal(event, perception, runtime, goal, sim.q, t,
+                                              waiting, config)
+                    if waiting is None or t - waiting[0] > config.unseen_goal_wait_s:
+                        record.error = (f"goal refused: {event.reason}" if waiting is None
+                                        else f"goal dropped after waiting {t - waiting[0]:.1f}"
+                                        f" s for a better view: {waiting[1]}")
+                        break
+                else:
+                    waiting = None
+                busy_until = decide(event, t)
+            elif waiting is None and t >= busy_until:  # the newest frame once it is free
                 busy_until = decide(runtime.update(t, sim.q, perception.observe(t),
                                                   qd_now=sim.qd), t)
         u = follower.update(t, sim.q)
@@ -188,7 +221,23 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
                 held_since = None
         else:
             held_since = None
+    if waiting is not None and record.error is None:
+        record.error = f"goal still waiting for a better view at the time limit: {waiting[1]}"
     return _finish(record, runtime, scenario, t)
+
+
+def _unseen_refusal(event: Event, perception: _Perception, runtime: ReactivePlanner,
+                    goal: PoseGoal, q: np.ndarray, t: float, waiting: tuple | None,
+                    config: SimConfig) -> tuple | None:
+    """As the planner node: a goal refused only because of the unseen part of a track waits
+    (``(since, reason, last try)``); None when the refusal is final."""
+    if config.unseen_goal_wait_s <= 0.0:
+        return None
+    names = perception.unseen(runtime, goal, q)
+    if names is None:
+        return None
+    since = t if waiting is None else waiting[0]
+    return since, unseen_reason(event.reason, names), t
 
 
 def _score_contact(record: RunRecord, mesh, fast, q: np.ndarray, obstacles) -> None:

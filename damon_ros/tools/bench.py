@@ -85,7 +85,8 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
 
     fast, mesh = Robot("fast", args.profile), Robot("mesh")
     config = SimConfig(perception=args.perception, perception_latency=args.latency,
-                       perception_noise=args.noise, seed=args.seed)
+                       perception_noise=args.noise, seed=args.seed,
+                       cameras=tuple(c.strip() for c in args.cameras.split(",")))
     records = []
     for scenario in scenarios:
         for name in planners:
@@ -104,6 +105,7 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
                           band=("static" if speed == 0.0 else
                                 f"{band[0]:g}-{band[1]:g} m/s" if band else "other"),
                           planner_settings=settings, perception=args.perception,
+                          **({"cameras": args.cameras} if args.perception == "camera" else {}),
                           wall_time_s=round(time.perf_counter() - t0, 3))
             records.append(record)
             out.write(json.dumps(record) + "\n")
@@ -235,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="results.jsonl", help="JSON lines output")
     parser.add_argument("--model", default=None, help="model directory (default: shipped)")
     parser.add_argument("--perception", choices=("ideal", "camera"), default="ideal")
+    parser.add_argument("--cameras", default="camera.yaml",
+                        help="--perception camera: comma-separated camera files (paths or "
+                             "shipped names), rendered together and fused, e.g. "
+                             "camera.yaml,camera_side.yaml")
     parser.add_argument("--latency", type=float, default=0.03, help="perception latency (s)")
     parser.add_argument("--noise", type=float, default=0.0, help="obstacle position noise (m)")
     parser.add_argument("--solve-time", type=float, default=1.0, help="OMPL budget per plan (s)")
@@ -257,6 +263,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.margin is not None and not 0.0 <= args.margin <= 0.5:
         parser.error("--margin must be in [0, 0.5] m")
+    if args.perception == "camera":
+        from damon_ros.perception.camera import load_cameras
+
+        try:
+            load_cameras(args.cameras)
+        except (OSError, ValueError) as exc:
+            print(f"damon-ros bench: --cameras: {exc}", file=sys.stderr)
+            return 2
     planners = [p.strip() for p in args.planners.split(",") if p.strip()]
     unknown = sorted(set(planners) - set(PLANNERS))
     if unknown:

@@ -29,10 +29,14 @@ def _true_centre(parts) -> np.ndarray:
     return 0.5 * (v.min(axis=0) + v.max(axis=0))
 
 
-def measure(scenarios, seconds: float, fps: float, seed: int) -> list[dict]:
-    """One row per (frame, true obstacle) seen: kind, motion, containment, errors, time."""
+def measure(scenarios, seconds: float, fps: float, seed: int,
+            cameras: str = "camera.yaml") -> list[dict]:
+    """One row per (frame, true obstacle) seen: kind, motion, containment, errors, time.
+
+    ``cameras``: comma-separated camera files, rendered at the same instant and fused
+    (`Tracker.update_views`)."""
     from damon_ros.core import shapes
-    from damon_ros.perception.camera import load_camera
+    from damon_ros.perception.camera import load_cameras
     from damon_ros.perception.tracking import Tracker
     from damon_ros.simulation.renderer import (
         load_render_settings,
@@ -41,18 +45,19 @@ def measure(scenarios, seconds: float, fps: float, seed: int) -> list[dict]:
         scene_at,
     )
 
-    camera = load_camera()
+    views = load_cameras(cameras)
     settings = load_render_settings()
     rng = np.random.default_rng(seed)
     rows = []
     for scenario in scenarios:
-        tracker = Tracker(camera)
+        tracker = Tracker(views[0])
         for t in np.arange(0.0, seconds, 1.0 / fps):
-            rgb, depth = render(camera, scene_at(scenario, t),
-                                **render_settings_kwargs(settings, rng))
+            frames = [render(camera, scene_at(scenario, t), **render_settings_kwargs(settings,
+                                                                                      rng))
+                      for camera in views]
             t0 = time.process_time()  # CPU time: what one core spends, whatever the load
-            tracks = tracker.update(rgb, depth, t)
-            elapsed = time.process_time() - t0
+            tracks = tracker.update_views(views, frames, t)
+            elapsed = (time.process_time() - t0) / len(views)  # per camera frame
             detections = tracker.detections
             for obstacle in scenario.obstacles:
                 parts = obstacle.parts_at(t)
@@ -60,7 +65,8 @@ def measure(scenarios, seconds: float, fps: float, seed: int) -> list[dict]:
                 centre = _true_centre(parts)
                 if not same:
                     rows.append({"kind": _kind(obstacle), "moving": _moving(obstacle, t),
-                                 "seen": False, "time_ms": 1e3 * elapsed})
+                                 "seen": False, "time_ms": 1e3 * elapsed,
+                                 "cams": len(views), "set": cameras})
                     continue
                 track = min(same, key=lambda tr: np.linalg.norm(tr.shape.position - centre))
                 samples = np.vstack([shapes.surface_samples(p, 0.008) for p in parts])
@@ -74,7 +80,8 @@ def measure(scenarios, seconds: float, fps: float, seed: int) -> list[dict]:
                     "centre_m": float(np.linalg.norm(_estimate_centre(track.shape) - centre)),
                     "velocity_mps": float(np.linalg.norm(track.velocity
                                                          - obstacle.velocity_at(t))),
-                    "estimate": track.shape.kind, "time_ms": 1e3 * elapsed})
+                    "estimate": track.shape.kind, "time_ms": 1e3 * elapsed,
+                    "cams": len(views), "set": cameras})
     return rows
 
 
@@ -93,15 +100,18 @@ def _moving(obstacle, t: float) -> bool:
     return bool(np.linalg.norm(obstacle.velocity_at(t)) > 0.0)
 
 
-def table(rows: list[dict], cameras: int = 1) -> str:
+def table(rows: list[dict]) -> str:
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in rows:
-        groups[(r["kind"], "moving" if r["moving"] else "static")].append(r)
-    header = (f"{'kind':<9} {'motion':<7} {'cams':>4} {'frames':>6} {'seen':>6} {'partial':>7} "
+        groups[(r["set"], r["kind"], "moving" if r["moving"] else "static")].append(r)
+    header = (f"{'kind':<9} {'motion':<7} {'cams':>5} {'frames':>6} {'seen':>6} {'partial':>7} "
               f"{'contained':>9} {'excess p50':>10} {'centre p50 mm':>13} {'centre p95 mm':>13} "
               f"{'vel p50 m/s':>11} {'estimates':<22}")
     lines = [header, "-" * len(header)]
-    for (kind, motion), rs in sorted(groups.items()):
+    sets = list(dict.fromkeys(r["set"] for r in rows))  # in the order given
+    for (camera_set, kind, motion), rs in sorted(groups.items(),
+                                                 key=lambda kv: (sets.index(kv[0][0]), kv[0][1:])):
+        cameras = f"{sets.index(camera_set) + 1}:{rs[0]['cams']}"
         seen = [r for r in rs if r["seen"]]
         full = [r for r in seen if not r["partial"]]
         kinds = defaultdict(int)
@@ -114,14 +124,17 @@ def table(rows: list[dict], cameras: int = 1) -> str:
 
         contained = np.mean([r["contained"] for r in full]) if full else float("nan")
         lines.append(
-            f"{kind:<9} {motion:<7} {cameras:>4} {len(rs):>6} {len(seen):>6} "
+            f"{kind:<9} {motion:<7} {cameras:>5} {len(rs):>6} {len(seen):>6} "
             f"{len(seen) - len(full):>7} {100 * contained:>8.2f}% {100 * p('excess', 50):>9.0f}% "
             f"{p('centre_m', 50, 1e3):>13.1f} {p('centre_m', 95, 1e3):>13.1f} "
             f"{p('velocity_mps', 50):>11.3f} "
             f"{','.join(f'{k}:{n}' for k, n in sorted(kinds.items())):<22}")
-    times = [r["time_ms"] for r in rows]
-    lines.append(f"\ntracker CPU time per 640x480 frame (all its obstacles, one process): "
-                 f"p50 {np.percentile(times, 50):.2f} ms, p95 {np.percentile(times, 95):.2f} ms")
+    lines.append("")
+    for i, camera_set in enumerate(sets, start=1):
+        times = [r["time_ms"] for r in rows if r["set"] == camera_set]
+        lines.append(f"set {i} ({camera_set}): tracker CPU time per 640x480 frame per camera "
+                     f"(all obstacles, one process): p50 {np.percentile(times, 50):.2f} ms, "
+                     f"p95 {np.percentile(times, 95):.2f} ms")
     return "\n".join(lines)
 
 
@@ -134,6 +147,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=4.0, help="scenario time per scenario")
     parser.add_argument("--fps", type=float, default=15.0, help="frames per scenario second")
     parser.add_argument("--seed", type=int, default=0, help="render noise seed")
+    parser.add_argument("--cameras", nargs="+", default=["camera.yaml"], metavar="FILES",
+                        help="camera sets, each a comma-separated list of camera files (paths "
+                             "or shipped names) fused together; e.g. camera.yaml "
+                             "camera.yaml,camera_side.yaml compares one and two cameras")
     args = parser.parse_args(argv)
     try:
         scenarios = [load_scenario(f) for f in scenario_files(args.scenarios)]
@@ -143,6 +160,15 @@ def main(argv: list[str] | None = None) -> int:
     if not scenarios:
         print("damon-ros bench-tracker: no scenario files", file=sys.stderr)
         return 2
-    rows = measure(scenarios, args.seconds, args.fps, args.seed)
+    from damon_ros.perception.camera import load_cameras
+
+    try:
+        for cameras in args.cameras:
+            load_cameras(cameras)
+    except (OSError, ValueError) as exc:
+        print(f"damon-ros bench-tracker: --cameras: {exc}", file=sys.stderr)
+        return 2
+    rows = [r for cameras in args.cameras
+            for r in measure(scenarios, args.seconds, args.fps, args.seed, cameras)]
     print(table(rows))
     return 0

@@ -57,6 +57,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default=None, help="scenario file (default: public D-001)")
     p.add_argument("--no-camera", action="store_true",
                    help="ground-truth obstacles instead of the camera and tracker")
+    p.add_argument("--cameras", default="camera.yaml",
+                   help="comma-separated camera files (paths or shipped names), one mock "
+                        "camera each, synchronised and fused by the tracker, e.g. "
+                        "camera.yaml,camera_side.yaml")
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record every topic to an MCAP file readable by ROS 2 bag tools")
     p.add_argument("--model", default=None, help="model directory (default: shipped)")
@@ -86,6 +90,13 @@ def main(argv: list[str] | None = None) -> int:
         scenario = load_scenario(path)
     except ScenarioError as exc:
         print(f"damon-ros demo: {exc}", file=sys.stderr)
+        return 2
+    from damon_ros.perception.camera import load_cameras
+
+    try:
+        load_cameras(args.cameras)
+    except (OSError, ValueError) as exc:
+        print(f"damon-ros demo: --cameras: {exc}", file=sys.stderr)
         return 2
     domain = args.domain_id if args.domain_id is not None else 1 + os.getpid() % 100
     out = Path(args.out)
@@ -117,11 +128,15 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
         "planner": ("planner", {"model_dir": args.model or "", **(
             {} if args.velocity_scale is None else {"velocity_scale": args.velocity_scale})},
                     {topics.OBSTACLES: topics.SIM_OBSTACLES} if args.no_camera else None),
-        "mock_camera": ("mock_camera", {**common, **truth, "publish_images": not args.no_camera},
-                        None),
+        "mock_camera": ("mock_camera", {**common, **truth, "publish_images": not args.no_camera,
+                                        **_camera_params(args.cameras, 0)}, None),
     }
     if not args.no_camera:
-        nodes["tracker"] = ("tracker", {}, None)
+        extra = args.cameras.split(",")[1:]
+        for i, _ in enumerate(extra, start=1):  # node name = key: the clock reaches it
+            nodes[f"mock_camera_{i}"] = ("mock_camera", {**common, **_camera_params(
+                args.cameras, i)}, {"__node": f"mock_camera_{i}"})
+        nodes["tracker"] = ("tracker", _tracker_params(args.cameras), None)
     procs = {}
     print(f"damon-ros demo: {scenario.name} ({scenario.description}) on ROS_DOMAIN_ID={domain}"
           f", {'ground-truth obstacles' if args.no_camera else 'camera + tracker'}")
@@ -135,6 +150,24 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
             if code not in (0, -2, 130):
                 print(f"  {name} exited with {code}; its log:\n{read_log(proc)[-2000:]}",
                       file=sys.stderr)
+
+
+def _camera_params(cameras: str, i: int) -> dict:
+    """mock_camera parameters of camera ``i`` of the list: its file and, with several, its
+    own topics and noise seed, only the first publishing the ground truth, all in sync."""
+    files = [c.strip() for c in cameras.split(",")]
+    if len(files) == 1:
+        return {"camera_config": files[0]}
+    return {"camera_config": files[i], "sync_stamps": True,
+            **({} if i == 0 else {"camera_prefix": f"camera_{i}/camera", "seed": i,
+                                  "publish_ground_truth": False})}
+
+
+def _tracker_params(cameras: str) -> dict:
+    files = [c.strip() for c in cameras.split(",")]
+    return {"cameras": [topics.CAMERA_PREFIX] + [f"camera_{i}/camera"
+                                                 for i in range(1, len(files))],
+            "camera_configs": files}
 
 
 def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
@@ -247,7 +280,8 @@ class ScenarioClock:
 
         self.executor, self.procs = executor, procs
         self.clients = [node.create_client(SetParameters, f"/{name}/set_parameters")
-                        for name in SIMULATORS]
+                        for name in procs if name in SIMULATORS
+                        or name.startswith("mock_camera_")]
 
     def start(self) -> float | None:
         """Wall time of scenario t = 0, set on every simulator before it came; None when one

@@ -38,7 +38,7 @@ from damon_ros.core.shapes import Shape
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment
 from damon_ros.ros.launch import read_log
-from damon_ros.ros.markers import shape_to_marker
+from damon_ros.ros.markers import SEEN_SUFFIX, shape_to_marker
 from damon_ros.ros.stamps import to_stamp
 
 CONFIG = rosutil.ROOT / "config"
@@ -91,9 +91,15 @@ class Cell:
         if not self.feeding:
             return
         now = self.last_fed = time.time()
-        self.marker_pub.publish(MarkerArray(markers=[
-            shape_to_marker(s, "test", k, FRAME, now, 0.3, (1.0, 0.0, 0.0, 1.0))
-            for k, s in enumerate(self.obstacles)]))
+        markers = []
+        for k, s in enumerate(self.obstacles):  # a (bound, seen surface) pair: both markers
+            bound, seen = s if isinstance(s, tuple) else (s, None)
+            markers.append(shape_to_marker(bound, "test", k, FRAME, now, 0.3,
+                                           (1.0, 0.0, 0.0, 1.0)))
+            if seen is not None:
+                markers.append(shape_to_marker(seen, "test" + SEEN_SUFFIX, k, FRAME, now, 0.3,
+                                               (1.0, 0.0, 0.0, 1.0)))
+        self.marker_pub.publish(MarkerArray(markers=markers))
 
     def lines(self, node: str, needle: str) -> list[str]:
         return rosutil.log_lines(self.procs[node], needle)
@@ -226,6 +232,46 @@ def test_a_bad_goal_is_refused_with_one_line_and_nothing_moves(cell: Cell, case,
     assert np.max(np.abs(cell.q() - q0)) < 1e-3
     n = len(cell.status)
     assert cell.ros.spin_until(lambda: len(cell.status) > n + 1, 2.0)  # still alive
+    assert cell.alive()
+
+
+def test_a_goal_refused_only_by_an_unseen_part_says_so_waits_and_is_dropped(cell: Cell):
+    """The tracker's bound engulfs the goal, but what its cameras saw of the object (the
+    ``/seen`` marker) is a face 20 cm beyond it: the refusal names the unseen part, the goal
+    waits ``unseen_goal_wait_s`` (3 s) for a better view, then is dropped with a line;
+    nothing moves meanwhile. Sent again, it is reached once a better view shrinks the
+    bound to the face while it waits."""
+    assert cell.settle()
+    position, quat = GOAL_A
+    out = np.append(position[:2] / np.linalg.norm(position[:2]), 0.0)  # away from the base
+    face = Shape("points", (), position + 0.2 * out,
+                 points=np.array([[0.0, -0.05, -0.05], [0.0, 0.05, -0.05], [0.0, 0.0, 0.05]]))
+    cell.obstacles.append((Shape("box", (0.5, 0.5, 0.3), position + 0.05 * out), face))
+    cell.ros.spin_for(0.3)
+    before = len(cell.lines("planner", "goal refused"))
+    trajectories, q0 = len(cell.trajectories), cell.q()
+    try:
+        cell.goal_pub.publish(goal_msg(position, quat))
+        line = _one_new_line(cell, "planner", "goal refused", before, timeout_s=15.0)
+        assert "only with the unseen part of test#1" in line and "waiting up to 3 s" in line
+        dropped = _one_new_line(cell, "planner", "goal refused", before + 1, timeout_s=20.0)
+    finally:
+        cell.obstacles[1:] = []
+    print(f"\n{line.split('] ', 1)[-1]}\n{dropped.split('] ', 1)[-1]}")
+    assert "goal dropped after waiting 3." in dropped and "unseen part of test#1" in dropped
+    assert len(cell.trajectories) == trajectories
+    assert np.max(np.abs(cell.q() - q0)) < 1e-3
+    # the same goal again; this time a better view shows the object ends at the face
+    cell.obstacles.append((Shape("box", (0.5, 0.5, 0.3), position + 0.05 * out), face))
+    cell.ros.spin_for(0.3)
+    try:
+        cell.goal_pub.publish(goal_msg(position, quat))
+        _one_new_line(cell, "planner", "goal refused", before + 2, timeout_s=15.0)
+        cell.obstacles[1:] = [Shape("box", (0.05, 0.1, 0.1), face.position)]
+        assert cell.ros.spin_until(lambda: cell.at(GOAL_A), 25.0), cell.logs()
+    finally:
+        cell.obstacles[1:] = []
+    assert cell.reach(tcp_goal(q0)), cell.logs()  # back: the next tests start from there
     assert cell.alive()
 
 

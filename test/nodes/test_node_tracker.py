@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from builtin_interfaces.msg import Time
 from rclpy.qos import qos_profile_sensor_data
 from rosutil import (
@@ -30,6 +31,7 @@ from rosutil import (
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import Marker, MarkerArray
 
+from damon_ros.core import shapes
 from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.scenario import load_scenario
 from damon_ros.core.shapes import Shape
@@ -39,7 +41,7 @@ from damon_ros.perception.tracking import Track
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment
 from damon_ros.ros.launch import read_log
-from damon_ros.ros.markers import ObstacleTable
+from damon_ros.ros.markers import ObstacleTable, marker_to_shape
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import stamp_seconds, to_stamp
 from damon_ros.simulation.renderer import render, scene_at
@@ -417,3 +419,65 @@ def test_moving_sphere_matches_the_ground_truth_of_the_same_stamp(tmp_path):
     assert np.linalg.norm(green.velocity - v_true) < 0.04, (green.velocity, v_true)
     # The static red block is tracked too, under its own colour class.
     assert any(markers_of(a, "red") for _, a in arrays)
+
+
+def test_two_mock_cameras_and_the_tracker_fuse_one_box_with_a_smaller_hidden_depth(tmp_path):
+    """A front and a side mock camera (own pose, topics and noise seed; synchronised, as
+    RealSense cameras with inter-camera sync) and two trackers on the same images: one with
+    both cameras, one with the front camera alone (its markers remapped). Both show one red
+    box that contains the truth; the fused one's depth along the front camera's rays (x),
+    once both frames of an instant are in, is about the box's 6 cm, the single camera's the
+    prior."""
+    scenario = yaml.safe_load((SCENARIOS / "A-001.yaml").read_text())
+    scenario["obstacles"] = [{"name": "tall", "shape": "box", "size": [0.06, 0.14, 0.5],
+                              "color": "red", "pose": {"position": [0.5, 0.0, 0.9],
+                                                       "orientation": [0, 0, 0, 1]}}]
+    # the top (1.15 m) is above the front camera (1.1 m): its depth shows to the side only
+    path = tmp_path / "tall.yaml"
+    path.write_text(yaml.safe_dump(scenario))
+    truth = Shape("box", (0.06, 0.14, 0.5), [0.5, 0.0, 0.9])
+    single = "damon/obstacles_front_only"
+    domain = next_domain_id(__file__)
+    env = node_environment(domain, tmp_path)
+    procs = []
+    try:
+        with RosClient(domain, realtime_priority=CLIENT_PRIORITY) as ros:
+            fused_rec = ros.record(MarkerArray, OBSTACLES, 100)
+            single_rec = ros.record(MarkerArray, single, 100)
+            common = {"scenario": str(path), "fps": 10.0, "sync_stamps": True}
+            procs += [
+                start_node("mock_camera", common, env, tmp_path / "front.log"),
+                start_node("mock_camera", {**common, "camera_config": "camera_side.yaml",
+                                           "camera_prefix": "camera_side",
+                                           "publish_ground_truth": False},
+                           env, tmp_path / "side.log", remaps={"__node": "mock_camera_side"}),
+                start_node("tracker", {"stats_period_s": 0.0,
+                                       "cameras": ["camera/camera", "camera_side"],
+                                       "camera_configs": ["", "camera_side.yaml"]},
+                           env, tmp_path / "tracker.log"),
+                start_node("tracker", {"stats_period_s": 0.0}, env, tmp_path / "single.log",
+                           remaps={"__node": "tracker_front_only", OBSTACLES: single})]
+
+            def boxes(rec: Recorder) -> list[Shape]:
+                """The last box of each stamp (a second camera's frame refines an instant)."""
+                last = {stamp_ns(m.header.stamp): marker_to_shape(m)
+                        for a in rec.messages for m in markers_of(a, "red")}
+                return [last[k] for k in sorted(last)]
+
+            ok = ros.spin_until(lambda: len(boxes(fused_rec)) >= 20 and len(boxes(single_rec))
+                                >= 10 or any(p.poll() is not None for p in procs), 60.0)
+            logs = "\n".join(read_log(p)[-1200:] for p in procs)
+            assert ok, f"fused {len(boxes(fused_rec))}, single {len(boxes(single_rec))}\n{logs}"
+            fused, alone = boxes(fused_rec)[-20:-1], boxes(single_rec)[-10:]
+            assert all(len(markers_of(a, "red")) == 1 for a in fused_rec.messages[-20:])
+    finally:
+        for proc in procs:
+            stop_node(proc, timeout=3.0)
+    samples = shapes.surface_samples(truth, 0.008)
+    for shape in fused + alone:
+        assert shapes.contains(shape, samples, 1e-9).all(), shape
+    depth = [float(np.ptp(shapes.enclosing_vertices(s)[:, 0])) for s in fused]
+    depth_alone = [float(np.ptp(shapes.enclosing_vertices(s)[:, 0])) for s in alone]
+    print(f"\nhidden depth (x extent): two cameras p50 {np.median(depth) * 1e3:.0f} mm, front "
+          f"alone p50 {np.median(depth_alone) * 1e3:.0f} mm (box 60 mm)")
+    assert np.median(depth) < 0.06 + 0.04 < np.median(depth_alone)

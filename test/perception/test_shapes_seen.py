@@ -255,8 +255,94 @@ def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
     assert len(one) == 1 and len(two) == 1
     for track in (one[0], two[0]):
         assert _inside(track.shape, [truth]) == 1.0
+        # the visible surface lies on the truth and inside the bound: the rest is hidden
+        seen = track.seen.position + track.seen.points
+        assert shapes.contains(track.shape, seen, 0.01).all()  # depth noise: 2 mm std
+        assert shapes.contains(truth, seen, 0.01).all()
+    assert len(two[0].seen.points) > len(one[0].seen.points)  # both views' surfaces
     depth_one = np.ptp(shapes.enclosing_vertices(one[0].shape)[:, 0])
     depth_two = np.ptp(shapes.enclosing_vertices(two[0].shape)[:, 0])
     assert depth_one >= CONFIG.max_thickness_m["box"]  # the prior bounds what is unseen
     assert depth_two < 0.06 + 0.04 < depth_one
     assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
+
+
+def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
+    """Two cameras whose frames are 15 ms apart (the tracker node's case): each frame is
+    fused with the other camera's latest one, grown by max_speed x age, so the bound of a
+    box moving at 0.3 m/s holds it at the newer stamp; the hidden depth still shrinks
+    against one camera's prior, and a frame that arrives late is kept for the next one."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, -0.3, 0.9], "orientation": [0, 0, 0, 1]},
+           "motion": {"type": "waypoints", "waypoints": [[0.0, 0.5, -0.3, 0.9],
+                                                        [2.0, 0.5, 0.3, 0.9]]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    tracker, alone = Tracker(front, CONFIG), Tracker(front, CONFIG)
+    rng = np.random.default_rng(1)
+    depths, alone_depths = [], []
+    for k in range(20):
+        for view, camera, t in ((0, front, 0.3 + k / 30), (1, side, 0.315 + k / 30)):
+            frame = render(camera, scene_at(scenario, t), 0.002, 0.01, rng)
+            tracks = tracker.update_camera(view, camera, *frame, t)
+            (track,) = tracks
+            assert _inside(track.shape, scenario.obstacles[0].parts_at(t)) == 1.0, (k, view)
+            if view == 0:
+                depths.append(np.ptp(shapes.enclosing_vertices(track.shape)[:, 0]))
+                (one,) = alone.update(*frame, t)
+                alone_depths.append(np.ptp(shapes.enclosing_vertices(one.shape)[:, 0]))
+    assert np.median(depths) < 0.06 + 2 * CONFIG.max_speed_mps * 0.015 + 0.04
+    assert np.median(depths) < np.median(alone_depths) - 0.05
+    # a frame older than the last tracked one is not tracked, yet kept for fusion
+    late = render(side, scene_at(scenario, 0.94), 0.002, 0.01, rng)
+    assert tracker.update_camera(1, side, *late, 0.94) is None
+    assert tracker._views[1][0] == 0.94
+
+
+def test_synchronised_cameras_arriving_one_by_one_fuse_as_one_instant():
+    """Hardware-synchronised cameras stamp their frames alike: the second frame of an
+    instant is fused with the first with no motion slack and the instant tracked again,
+    as tight as the synchronous `update_views`; a third, older frame is only kept."""
+    box = {"name": "b", "shape": "box", "size": [0.06, 0.14, 0.5], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.9], "orientation": [0, 0, 0, 1]}}
+    front = _look_at([2.5, 0.0, 0.9], [0.5, 0.0, 0.9])
+    side = _look_at([0.5, 2.5, 1.1], [0.5, 0.0, 0.6])
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    rng = np.random.default_rng(2)
+    tracker, together = Tracker(front, CONFIG), Tracker(front, CONFIG)
+    for t in (0.0, 1 / 30):
+        frames = [render(c, scene_at(scenario, t), 0.002, 0.01, rng) for c in (front, side)]
+        (first,) = tracker.update_camera(0, front, *frames[0], t)
+        (second,) = tracker.update_camera(1, side, *frames[1], t)
+        (synced,) = together.update_views([front, side], frames, t)
+        assert second.id == first.id and second.last_seen == t
+        for track in (first, second):
+            assert _inside(track.shape, [truth]) == 1.0
+        depth = np.ptp(shapes.enclosing_vertices(second.shape)[:, 0])
+        assert depth == pytest.approx(np.ptp(shapes.enclosing_vertices(synced.shape)[:, 0]))
+        assert depth < 0.06 + 0.04
+    assert tracker.update_camera(1, side, *frames[1], t) is None  # that instant has it
+
+
+def test_a_bound_that_leaves_out_what_another_camera_saw_is_not_intersected():
+    """Camera 1's bound rests on a prior the object breaks (it ends 3 cm short of the far
+    end that camera 0 saw): intersected, it would cut the object; it is left out, while a
+    bound that misses a seen point by a millimetre (noise) only moves that face out."""
+    from damon_ros.perception.fusion import fuse
+
+    truth = Shape("box", (0.3, 0.06, 0.06), [0.5, 0.0, 0.5])
+    seen0 = truth.position + np.array([[0.15, 0.0, 0.0], [-0.15, 0.0, 0.0], [0, 0.03, 0.03]])
+    whole0 = Shape("box", (0.32, 0.08, 0.2), truth.position)  # deep along z: its prior
+    short1 = Shape("box", (0.24, 0.2, 0.08), [0.47, 0.0, 0.5])  # ends at x = 0.59 < 0.65
+    seen1 = truth.position + np.array([[0.0, 0.0, 0.03], [0.1, 0.03, 0.0]])
+    ((shape, partial, members),) = fuse([[(whole0, False)], [(short1, False)]], 0.15,
+                                        seen=[[seen0], [seen1]])
+    assert not partial and members == [(0, 0), (1, 0)]
+    assert shapes.contains(shape, shapes.surface_samples(truth, 0.01), 1e-9).all()
+    nearly = Shape("box", (0.299, 0.2, 0.08), truth.position)  # 0.5 mm short at each end
+    ((shape, _, _),) = fuse([[(whole0, False)], [(nearly, False)]], 0.15,
+                            seen=[[seen0], [seen1]])
+    assert shapes.contains(shape, shapes.surface_samples(truth, 0.01), 1e-9).all()
+    assert np.ptp(shapes.enclosing_vertices(shape)[:, 2]) < 0.1  # still cut to 8 cm in z

@@ -272,3 +272,24 @@ def test_zero_stamp_uses_the_receive_time_and_bad_arguments_are_refused():
         ObstacleTable(FRAME, velocity_window_s=0.0)
     with pytest.raises(ValueError, match="now"):
         table.apply([], now=math.nan)
+
+
+RGBA = (1.0, 0.0, 0.0, 1.0)
+
+
+def test_seen_surface_markers_are_kept_beside_their_obstacle_not_as_obstacles():
+    from damon_ros.ros.markers import SEEN_SUFFIX, delete_marker
+
+    box = Shape("box", (0.1, 0.2, 0.3), [0.5, 0.0, 0.4])
+    face = Shape("points", (), [0.45, 0.0, 0.4],
+                 points=np.array([[0, -0.1, -0.15], [0, 0.1, -0.15], [0, 0.0, 0.15]]))
+    table = ObstacleTable()
+    assert not table.apply([shape_to_marker(box, "red", 3, "panda_link0", 1.0, 0.5, RGBA),
+                            shape_to_marker(face, "red" + SEEN_SUFFIX, 3, "panda_link0", 1.0,
+                                            0.5, RGBA)], now=1.0)
+    assert [o.ns for o in table.obstacles(1.0)] == ["red"]  # the surface is no obstacle
+    (seen,) = table.seen_parts(1.0).items()
+    assert seen[0] == ("red", 3) and np.allclose(seen[1].points + seen[1].position,
+                                                 face.points + face.position)
+    table.apply([delete_marker("red", 3, "panda_link0", 1.1)], now=1.1)
+    assert table.seen_parts(1.1) == {}  # gone with its obstacle

@@ -102,3 +102,20 @@ def test_the_stress_view_groups_runs_by_mover_speed_band(tmp_path, capsys):
         assert r["planner_settings"]["space_time"] is True
     table = capsys.readouterr().out
     assert "clr min mm" in table and "1-1.5 m/s" in table and "static" in table
+
+
+def test_bench_tracker_compares_camera_sets_and_refuses_a_bad_camera_list(tmp_path, capsys):
+    from damon_ros.tools.bench_tracker import main as bench_tracker
+
+    scenario = str(public_scenarios_dir() / "A-001.yaml")
+    assert bench_tracker(["--scenarios", scenario, "--seconds", "0.3", "--fps", "10",
+                          "--cameras", "camera.yaml", "camera.yaml,camera_side.yaml"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()
+            if line.startswith("box ")]
+    assert [r[2] for r in rows] == ["1:1", "2:2"]  # set number: cameras, one row per set
+    assert all(r[6] == "100.00%" for r in rows)  # the estimate contains the box
+    assert int(rows[1][7].rstrip("%")) < int(rows[0][7].rstrip("%"))  # less volume excess
+    assert bench_tracker(["--scenarios", scenario, "--cameras", "camera.yaml,nowhere.yaml"]) == 2
+    assert "nowhere.yaml" in capsys.readouterr().err
+    assert bench(["--scenarios", scenario, "--perception", "camera", "--cameras", "x,",
+                  "--out", str(tmp_path / "r.jsonl")]) == 2
