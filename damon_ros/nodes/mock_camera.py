@@ -157,6 +157,7 @@ class MockCamera(Node):
         self.time_scale = p["time_scale"]
         self.truth_lifetime_s = p["truth_lifetime_frames"] * self.period
         self._render_s: deque[float] = deque([0.5 * self.period], maxlen=30)
+        self._publish_s: deque[float] = deque(maxlen=3000)  # publishing a frame's messages
         self._frames = 0
         self._overruns = 0
         color, depth, info = topics.camera_topics(p["camera_prefix"])
@@ -211,6 +212,7 @@ class MockCamera(Node):
         self._publish(messages, to_stamp(stamp_s))
         self._frames += 1
         done = clock_seconds(self)
+        self._publish_s.append(done - published)
         if done - tick > self.period:
             self._overruns += 1
             self.get_logger().warning(
@@ -248,9 +250,11 @@ class MockCamera(Node):
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: one line of frame statistics."""
         ms = 1e3 * np.asarray(self._render_s)
+        pub = 1e3 * np.asarray(self._publish_s) if self._publish_s else np.full(1, np.nan)
         self.get_logger().info(
             f"{self._frames} frames published, render p50 {np.median(ms):.1f} ms (last "
-            f"{ms.size}), {self._overruns} frames over the period")
+            f"{ms.size}), publish p50 {np.median(pub):.2f} ms p95 {np.percentile(pub, 95):.2f} "
+            f"ms (last {len(self._publish_s)}), {self._overruns} frames over the period")
 
 
 def main(args: Sequence[str] | None = None) -> int:
