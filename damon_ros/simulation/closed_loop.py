@@ -146,7 +146,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
                 follower.hold(sim.q)
 
     t0 = time.perf_counter()
-    event = runtime.set_goal(q, goal, perception.observe(t))
+    event = runtime.set_goal(q, goal, perception.observe(t), t=t)
     record.planning_time_s = time.perf_counter() - t0
     if event.kind == "refused":
         record.error = f"goal refused: {event.reason}"
