@@ -324,6 +324,15 @@ class GraphPlanner:
             return min(self.config.margin, 0.5 * clearance)
         return clearance - 1e-4
 
+    def _mover_margin(self, q: np.ndarray, scene: Scene) -> float:
+        """The margin of the space-time checks from ``q``: λ, or the start margin when a
+        mover (where it is now, not swept) is already closer, never below 0. With the swept
+        shapes, a fast mover's 0.3 s sweep over the arm made it negative, and the whole
+        remaining trajectory was then checked as if penetration were allowed: a ball
+        closing at 1.4 m/s went unflagged until it touched (stress scene S-v1-1.5-012)."""
+        return max(0.0, min(self.config.margin,
+                            self._start_margin(q, tuple(s for s, _ in scene.moving))))
+
     # ---- goals ----------------------------------------------------------------------
     def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
         """Joint goal for a pose (IK nearest ``q_near`` with clearance) or a joint vector.
@@ -404,7 +413,7 @@ class GraphPlanner:
         if not scene.moving:
             return result
         t0 = time.perf_counter()
-        margin = min(self.config.margin, self._start_margin(q_start, scene.ahead))
+        margin = self._mover_margin(q_start, scene)
         at_rest = qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S
         for attempt in range(self.config.space_time_reroutes + 1):
             if not result.success or result.trajectory is None:
@@ -493,7 +502,7 @@ class GraphPlanner:
         q = np.asarray(q, float)
         stop = self.stop_trajectory(q, qd)
         if margin is None:
-            margin = min(self.config.margin, self._start_margin(q, scene.ahead))
+            margin = self._mover_margin(q, scene)
         statics = scene.statics()
         if statics.now and not _Query(self, q, q, statics).segment_certified(
                 q, stop.positions[-1], first=True):
@@ -516,8 +525,7 @@ class GraphPlanner:
         threatened, why = self.path_threatened(q_now, remaining, scene.statics())
         if threatened:
             return threatened, why
-        margin = min(self.config.margin, self._start_margin(np.asarray(q_now, float),
-                                                             scene.ahead))
+        margin = self._mover_margin(np.asarray(q_now, float), scene)
         contact = first_contact(self.robot, np.asarray(times, float),
                                 np.asarray(positions, float), scene.moving, margin,
                                 self.config.resolution, self.config.prediction, scene.age_s)
@@ -939,7 +947,7 @@ class GraphPlanner:
         query = _Query(self, q0, q0, scene)
         # with movers the clearance now can be large and still shrinking: more than λ will do
         floor = self.config.margin if scene.moving else max(current, self.config.margin)
-        margin = min(self.config.margin, self._start_margin(q_now, scene.ahead))
+        margin = self._mover_margin(q_now, scene)
         for i in np.argsort(-clear)[:24]:
             if clear[i] <= floor + 0.01:
                 break

@@ -79,23 +79,22 @@ def test_every_published_trajectory_keeps_a_certified_stop_from_each_state(plann
     """Property, from every sample (10 ms apart, denser than the planner's checks): the
     stop from there — coast, then the full-limit brake; at the end, resting there — stays
     out of each mover's predicted region by the margin the planner certifies (λ, or the
-    start margin, less the half time step its checks add). The balls cross the hand's way
-    just after it passed: some trajectories are then clear while a stop on them, or the
-    goal right after the arrival, is not (without the stop check one of these is
-    published)."""
+    start margin from the movers, less the half time step its checks add). The balls
+    cross the hand's way just after it passed: some trajectories are then clear while a
+    stop on them, or the goal right after the arrival, is not (without the stop check
+    such a trajectory is published)."""
     q0, q1 = _long_move()
     free = planner.plan(q0, q1, ())
     limits, prediction = planner.limits, planner.config.prediction
     rng = np.random.default_rng(7)
     published = 0
-    for ball, v in _rising_scenes(fast, free.trajectory, rng, 40):
+    for ball, v in _rising_scenes(fast, free.trajectory, rng, 80):
         scene = Scene((ball,), (swept(ball, v, 0.3),), ((ball, v),), AGE)
         result = planner.plan(q0, q1, scene)
         if not result.success:
             continue
         published += 1
-        margin = (min(planner.config.margin, planner._start_margin(q0, scene.ahead))
-                  - 0.5 * prediction.step_m)
+        margin = planner._mover_margin(q0, scene) - 0.5 * prediction.step_m
         tr = result.trajectory
         for i in range(len(tr.times)):
             times, states = braking_states(tr.positions[i], tr.velocities[i], limits,
@@ -105,7 +104,7 @@ def test_every_published_trajectory_keeps_a_certified_stop_from_each_state(plann
             assert first_contact(fast, times, states, [(ball, v)], margin,
                                  planner.config.resolution, prediction,
                                  AGE + float(tr.times[i])) is None, (i, tr.times[i])
-    assert published >= 3
+    assert published >= 2
 
 
 def _executing(planner: GraphPlanner, space_time: bool) -> ReactivePlanner:
