@@ -24,7 +24,7 @@ from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, START_LIMIT_TOLERANCE,
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
 from damon_ros.planning.graph_search import GraphSearch
-from damon_ros.planning.space_time import Prediction, first_contact, predicted_region
+from damon_ros.planning.space_time import Contact, Prediction, first_contact, predicted_region
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,15 @@ class Scene:
             return obstacles
         shapes = tuple(obstacles)
         return cls(shapes, shapes)
+
+    def statics(self) -> Scene:
+        """The scene without its movers (``now[i]`` swept into ``ahead[i]``): what the
+        path checks still look at when the movers are checked in space and time."""
+        if not self.moving or len(self.now) != len(self.ahead):
+            return self
+        ids = {id(s) for s, _ in self.moving}
+        keep = [i for i, s in enumerate(self.now) if id(s) not in ids]
+        return Scene(tuple(self.now[i] for i in keep), tuple(self.ahead[i] for i in keep))
 
 
 @dataclass(frozen=True)
@@ -105,6 +114,20 @@ START_DELAYS_S = (0.2, 0.4, 0.7, 1.0, 1.4)
 runtime's stall time (1.5 s), after which a still arm is re-planned."""
 BRAKE_LATENCY_S = 0.03
 """Coasting before braking starts: planning, DDS and a controller tick (measured 10-30 ms)."""
+STOP_EVERY_RAD = 0.1
+"""A published trajectory's certified stop is checked from states this far apart (and at
+most `STOP_EVERY_S`): between two, the brakes start within a few centimetres of a checked
+one, which the braking check's extra `STOP_MARGIN_M` covers."""
+STOP_EVERY_S = 0.1
+STOP_MARGIN_M = 0.01
+RECHECK_SLACK_M = 0.005
+"""m less margin when the running trajectory is re-checked against the movers than when it
+was certified (never below 0): one perception noise sigma. Without it a trajectory certified
+by a millimetre was refused at the next frame when the mover's reported position jittered,
+and the arm re-routed 3x as often as with the swept check (stress bench, slow movers)."""
+REST_HORIZON_S = 1.0
+"""An arm at rest (holding, or at the end of a stop or an escape) is checked this long
+against the movers' predictions: longer than the hold's retry and a re-route's latency."""
 
 
 @dataclass
@@ -306,6 +329,15 @@ class GraphPlanner:
             return min(self.config.margin, 0.5 * clearance)
         return clearance - 1e-4
 
+    def _mover_margin(self, q: np.ndarray, scene: Scene) -> float:
+        """The margin of the space-time checks from ``q``: λ, or the start margin when a
+        mover (where it is now, not swept) is already closer, never below 0. With the swept
+        shapes, a fast mover's 0.3 s sweep over the arm made it negative, and the whole
+        remaining trajectory was then checked as if penetration were allowed: a ball
+        closing at 1.4 m/s went unflagged until it touched (stress scene S-v1-1.5-012)."""
+        return max(0.0, min(self.config.margin,
+                            self._start_margin(q, tuple(s for s, _ in scene.moving))))
+
     # ---- goals ----------------------------------------------------------------------
     def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
         """Joint goal for a pose (IK nearest ``q_near`` with clearance) or a joint vector.
@@ -386,7 +418,7 @@ class GraphPlanner:
         if not scene.moving:
             return result
         t0 = time.perf_counter()
-        margin = min(self.config.margin, self._start_margin(q_start, scene.ahead))
+        margin = self._mover_margin(q_start, scene)
         at_rest = qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S
         for attempt in range(self.config.space_time_reroutes + 1):
             if not result.success or result.trajectory is None:
@@ -416,10 +448,97 @@ class GraphPlanner:
         return result
 
     def _contact(self, trajectory, scene: Scene, margin: float):
-        """`space_time.first_contact` of a timed trajectory with the scene's movers."""
-        return first_contact(self.robot, trajectory.times, trajectory.positions, scene.moving,
-                             margin, self.config.resolution, self.config.prediction,
-                             scene.age_s)
+        """`space_time.first_contact` of a timed trajectory with the scene's movers, then of
+        the stops from its states (`_stop_contact`): a trajectory is published only with a
+        certified stop at every instant."""
+        contact = first_contact(self.robot, trajectory.times, trajectory.positions,
+                                scene.moving, margin, self.config.resolution,
+                                self.config.prediction, scene.age_s)
+        return contact if contact is not None else self._stop_contact(trajectory, scene,
+                                                                        margin)
+
+    def _stop_contact(self, trajectory, scene: Scene, margin: float):
+        """Where braking from one of the trajectory's states would meet a mover's predicted
+        region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
+        the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
+        the velocity) is checked in space and time from that instant on, with STOP_MARGIN_M
+        more margin for the states between two checked ones. Braking past a waypoint (the
+        stop is straight along the velocity, the path turns there) is checked against the
+        static obstacles on the fast model. A scene without movers is not checked: its
+        stops stay on certified segments but for such an overshoot (the cost of a static
+        scene stays what it was). The end state is checked at rest for REST_HORIZON_S: an
+        arm that arrives just before a mover passes through its goal has no stop there."""
+        if not scene.moving:
+            return None
+        p = self.config.prediction
+        tau0 = max(scene.age_s, p.min_age_s)
+        statics = scene.statics().ahead
+        from damon_ros.planning.trajectory import braking_states
+
+        for i in _stop_states(trajectory):
+            q, qd = trajectory.positions[i], trajectory.velocities[i]
+            times, states = braking_states(q, qd, self.limits, BRAKE_LATENCY_S)
+            contact = first_contact(self.robot, times, states, scene.moving,
+                                    margin + STOP_MARGIN_M, self.config.resolution, p,
+                                    tau0 + float(trajectory.times[i]))
+            if contact is not None:
+                return replace(contact, time_s=float(trajectory.times[i]) + contact.time_s)
+            if statics and not self.segment_free(q, states[-1], statics, 0.0, exact=False) \
+                    and not self.exact.segment_free(q, states[-1], statics, margin=0.0,
+                                                    resolution=self.config.resolution):
+                return Contact(float(trajectory.times[i]), -1, q, statics[0], 0.0)
+        # the last stop is staying at the end: the arm arrives, then rests there
+        end = trajectory.positions[-1]
+        contact = first_contact(self.robot, np.array([0.0, REST_HORIZON_S]),
+                                np.vstack([end, end]), scene.moving, margin,
+                                self.config.resolution, p, tau0 + float(trajectory.times[-1]))
+        if contact is not None:
+            return replace(contact, time_s=float(trajectory.times[-1]) + contact.time_s)
+        return None
+
+    def rest_contact(self, q: np.ndarray, qd: np.ndarray | None, scene: Scene,
+                     margin: float | None = None):
+        """Where stopping now (`stop_trajectory`) and staying at rest for REST_HORIZON_S
+        would meet a mover's predicted region, or None: is braking in place a safe place
+        to go? The braking line is checked against the static obstacles too (start-margin
+        rules: it leaves the current state)."""
+        from damon_ros.planning.trajectory import held_until
+
+        q = np.asarray(q, float)
+        stop = self.stop_trajectory(q, qd)
+        if margin is None:
+            margin = self._mover_margin(q, scene)
+        statics = scene.statics()
+        if statics.now and not _Query(self, q, q, statics).segment_certified(
+                q, stop.positions[-1], first=True):
+            return Contact(0.0, -1, q, statics.now[0], 0.0)
+        return first_contact(self.robot, *_timed(held_until(stop, stop.duration
+                                                            + REST_HORIZON_S)),
+                             scene.moving, margin, self.config.resolution,
+                             self.config.prediction, scene.age_s)
+
+    def trajectory_threatened(self, q_now: np.ndarray, remaining: np.ndarray, times,
+                              positions, obstacles) -> tuple[bool, str]:
+        """`path_threatened` in space and time: the static obstacles against the rest of
+        the path as today (swept, start margin for what leaves the current state), the
+        movers against the rest of the timed trajectory (``times`` from now, ``positions``
+        from ``q_now``) where each is predicted to be then. A mover that will not meet the
+        arm is no reason to stop; one that will is caught however far ahead it meets it.
+        The movers' margin is RECHECK_SLACK_M less than at planning (hysteresis)."""
+        scene = Scene.of(obstacles)
+        if not scene.moving:
+            return self.path_threatened(q_now, remaining, scene)
+        threatened, why = self.path_threatened(q_now, remaining, scene.statics())
+        if threatened:
+            return threatened, why
+        margin = max(0.0, self._mover_margin(np.asarray(q_now, float), scene)
+                     - RECHECK_SLACK_M)
+        contact = first_contact(self.robot, np.asarray(times, float),
+                                np.asarray(positions, float), scene.moving, margin,
+                                self.config.resolution, self.config.prediction, scene.age_s)
+        if contact is not None:
+            return True, contact.describe()
+        return False, ""
 
     def _delayed(self, trajectory, scene: Scene, margin: float):
         """``trajectory`` started after a wait at its first state (the shortest of
@@ -800,39 +919,79 @@ class GraphPlanner:
                                  jerk_scale=c.jerk_scale, dt=c.trajectory_dt)
 
     def escape(self, q_now: np.ndarray, obstacles, candidates: int = 96,
-               rng: np.random.Generator | None = None) -> PlanResult:
+               rng: np.random.Generator | None = None, qd_now=None) -> PlanResult:
         """A short certified move to a configuration with more clearance, for when no route
         to the goal exists and an obstacle is closing in: holding still is not safe from
         something that moves. Candidates are nearby graph vertices and random joint
-        perturbations, ranked by clearance from the swept obstacles; the clearest whose
-        straight segment is certified (against the obstacles now) wins."""
+        perturbations, ranked by clearance from the swept obstacles and from where the
+        movers are predicted over REST_HORIZON_S; the clearest whose straight segment is
+        certified (against the obstacles now) wins — with movers, only one whose timed
+        move, and REST_HORIZON_S at rest after it, is certified in space and time (with its
+        stops): evade where the mover will be, not where it is. A moving arm (``qd_now``)
+        escapes from where it brakes to, the brake part of the trajectory."""
         t0 = time.perf_counter()
         q_now = np.asarray(q_now, float)
         scene = Scene.of(obstacles)
         if not scene.now:
             return PlanResult(False, "nothing to escape from")
         rng = rng or np.random.default_rng(0)
-        current = self.clearance(q_now, scene.ahead)
-        jitter = self.inside_limits(q_now + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
+        brake, q0 = None, q_now
+        if qd_now is not None and float(np.max(np.abs(qd_now))) >= MOVING_RAD_S:
+            brake = self.stop_trajectory(q_now, np.asarray(qd_now, float))
+            q0 = brake.positions[-1]
+            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or not _Query(
+                    self, q_now, q0, scene).segment_certified(q_now, q0, first=True):
+                return PlanResult(False, "no certified escape move found (braking from the "
+                                  "current speed is not certified free)")
+        ranking = (*scene.ahead, *self._predicted(scene))
+        current = self.clearance(q0, ranking)
+        jitter = self.inside_limits(q0 + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
         pool = jitter
         if self._tree is not None:
-            _, idx = self._tree.query(q_now, k=min(candidates // 2, len(self._safe_ids)))
+            _, idx = self._tree.query(q0, k=min(candidates // 2, len(self._safe_ids)))
             pool = np.vstack([self.graph.q[self._safe_ids[np.atleast_1d(idx)]], jitter])
-        clear = self.robot.distances(pool, scene.ahead)
-        query = _Query(self, q_now, q_now, scene)
+        clear = self.robot.distances(pool, ranking)
+        query = _Query(self, q0, q0, scene)
+        # with movers the clearance now can be large and still shrinking: more than λ will do
+        floor = self.config.margin if scene.moving else max(current, self.config.margin)
+        margin = self._mover_margin(q_now, scene)
         for i in np.argsort(-clear)[:24]:
-            if clear[i] <= max(current, self.config.margin) + 0.01:
+            if clear[i] <= floor + 0.01:
                 break
             query.checked += 1
-            if query.segment_certified(q_now, pool[i], first=True) and \
-                    self.robot.segment_self_collision_free(q_now, pool[i]):
-                path = np.array([q_now, pool[i]])
-                return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
-                                  path=path, trajectory=self._time_parameterize(path),
-                                  goal_q=self.goal_q, edges_checked=query.checked,
-                                  timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+            if not (query.segment_certified(q0, pool[i], first=True)
+                    and self.robot.segment_self_collision_free(q0, pool[i])):
+                continue
+            path = np.array([q0, pool[i]])
+            trajectory = self._time_parameterize(path)
+            if brake is not None:
+                from damon_ros.planning.trajectory import concatenate
+
+                path = np.vstack([q_now[None], path])
+                trajectory = concatenate(brake, trajectory)
+            if scene.moving and not self._rests_clear(trajectory, scene, margin):
+                continue
+            return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
+                              path=path, trajectory=trajectory, goal_q=self.goal_q,
+                              edges_checked=query.checked,
+                              timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
         return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+
+    def _rests_clear(self, trajectory, scene: Scene, margin: float) -> bool:
+        """The trajectory, then REST_HORIZON_S at rest at its end, certified in space and
+        time with its stops."""
+        from damon_ros.planning.trajectory import held_until
+
+        return self._contact(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
+                             scene, margin) is None
+
+    def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
+        """Each mover where it is predicted a quarter, half, three quarters and all of
+        REST_HORIZON_S from now (not grown): what an escape move should get away from."""
+        tau0 = max(scene.age_s, self.config.prediction.min_age_s)
+        return tuple(s.moved_to(s.position + v * (tau0 + f * REST_HORIZON_S))
+                     for s, v in scene.moving for f in (0.25, 0.5, 0.75, 1.0))
 
     # ---- monitoring -----------------------------------------------------------------
     def path_threatened(self, q_now: np.ndarray, remaining: np.ndarray,
@@ -872,3 +1031,22 @@ def _via(route: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarr
     path = np.vstack([q_start[None], middle, q_goal[None]])
     step = np.max(np.abs(np.diff(path, axis=0)), axis=1)
     return path[np.concatenate([[True], step > 1e-9])]
+
+
+def _stop_states(trajectory) -> list[int]:
+    """Indices of the moving states whose stops `_stop_contact` checks: the first moving
+    one, then each STOP_EVERY_RAD (largest joint) or STOP_EVERY_S after the last."""
+    from damon_ros.planning.trajectory import AT_REST_RAD_S
+
+    moving = np.max(np.abs(trajectory.velocities), axis=1) >= AT_REST_RAD_S
+    out: list[int] = []
+    for i in np.flatnonzero(moving):
+        if not out or trajectory.times[i] - trajectory.times[out[-1]] >= STOP_EVERY_S or \
+                np.max(np.abs(trajectory.positions[i] - trajectory.positions[out[-1]])) >= \
+                STOP_EVERY_RAD:
+            out.append(int(i))
+    return out
+
+
+def _timed(trajectory) -> tuple[np.ndarray, np.ndarray]:
+    return trajectory.times, trajectory.positions

@@ -2,10 +2,13 @@
 
 The planner node and the closed-loop benchmark both drive this class, so the decisions a
 user sees on the robot are exactly the ones the benchmark scores. Every obstacle update
-(and a fixed-rate tick) re-certifies the rest of the path against all obstacles, each
-swept over a short prediction horizon along its estimated velocity; when the path is no
-longer certified the loop re-routes from the current state, and when no certified route
-exists it holds the arm and retries until one appears.
+(and a fixed-rate tick) re-certifies the rest of the path: against the static obstacles
+swept over a short prediction horizon, as the path checks do, and — the rest of the
+*timed* trajectory from where the arm is on it — against where each mover is predicted
+then (`GraphPlanner.trajectory_threatened`). When it is no longer certified the loop
+re-routes from the current state; when no certified route exists it stops the arm if
+braking in place is certified in space and time, else it evades (a certified escape move)
+before holding, and a holding arm a mover's prediction will reach evades as well.
 """
 
 from __future__ import annotations
@@ -20,6 +23,11 @@ import numpy as np
 from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
 from damon_ros.planning.space_time import movers
+
+TRACKING_RAD = 0.05
+"""The arm counts as on its trajectory's schedule when within this of the state due now
+(the follower tracks within 0.02 rad); farther (halted, stalled), the rest of the
+trajectory is taken from the state nearest the arm instead."""
 
 
 def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
@@ -108,6 +116,9 @@ class ReactivePlanner:
         self.state = "idle"
         self.path = np.zeros((0, 7))
         self.segment = 0
+        self.trajectory = None  # what runs, and its time 0 on the caller's clock (or None)
+        self._t_start: float | None = None
+        self._sample = 0  # the trajectory sample the arm was last found at
         self.last_retry = -math.inf
         self.last_probability = 0.0
         self.pending_goal = None  # a goal given before obstacle data arrived
@@ -127,11 +138,18 @@ class ReactivePlanner:
                      moving, age_s)
 
     def set_goal(self, q_now: np.ndarray, goal, obstacles: Sequence[tuple[Shape, np.ndarray]],
-                 perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event:
+                 perception_age_s: float = 0.0, qd_now: np.ndarray | None = None,
+                 t: float | None = None) -> Event:
         """Plan to a new goal (replacing any current one). Without fresh obstacle data the
         goal waits (the arm holds) and is planned as soon as data arrives: never blind.
         ``qd_now`` (joint velocities, optional): a moving arm's route starts where it stops
-        (`GraphPlanner.braking_point`)."""
+        (`GraphPlanner.braking_point`). ``t`` (the clock `update` gets, optional): when the
+        trajectory starts, for its re-checks in space and time."""
+        event = self._set_goal(q_now, goal, obstacles, perception_age_s, qd_now)
+        self._started(event, t)
+        return event
+
+    def _set_goal(self, q_now, goal, obstacles, perception_age_s, qd_now) -> Event:
         timeout = self.config.perception_timeout_s
         if timeout > 0 and perception_age_s > timeout:
             self.pending_goal, self._pending_since = goal, None
@@ -168,6 +186,19 @@ class ReactivePlanner:
                obstacles: Sequence[tuple[Shape, np.ndarray]],
                perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event | None:
         """Called on every obstacle update and at a fixed rate; returns an event or None."""
+        event = self._update(t, q_now, obstacles, perception_age_s, qd_now)
+        self._started(event, t)
+        return event
+
+    def _started(self, event: Event | None, t: float | None) -> None:
+        """A trajectory sent at ``t`` starts when its computation is over."""
+        if event is not None and event.kind == "trajectory":
+            self._t_start = None if t is None else t + event.latency_ms / 1e3
+
+    def _update(self, t: float, q_now: np.ndarray,
+                obstacles: Sequence[tuple[Shape, np.ndarray]],
+                perception_age_s: float = 0.0,
+                qd_now: np.ndarray | None = None) -> Event | None:
         if self.state in ("idle", "reached"):
             return None
         q_now = np.asarray(q_now, float)
@@ -214,18 +245,54 @@ class ReactivePlanner:
         on_path = self._advance(q_now)
         # re-check the certified path from where the arm is on it: a tracking error alone is
         # no reason to re-route (the short step back onto the path is checked too)
-        threatened, why = self.planner.path_threatened(
-            q_now, np.vstack([on_path[None], self.path[self.segment + 1:]]), shapes)
+        remaining = np.vstack([on_path[None], self.path[self.segment + 1:]])
+        timed = self._remaining(t, q_now) if shapes.moving else None
+        if timed is None:
+            threatened, why = self.planner.path_threatened(q_now, remaining, shapes)
+        else:
+            threatened, why = self.planner.trajectory_threatened(q_now, remaining, *timed,
+                                                                 shapes)
         if not threatened:
             return None
         if self.on_threat is not None:
             self.on_threat(why)
         return self._reroute(q_now, shapes, why, qd_now)
 
+    def _remaining(self, t: float, q_now: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rest of the running trajectory as (times from now, states from ``q_now``):
+        from the sample due now when the arm is on schedule (`TRACKING_RAD`), else from the
+        sample nearest the arm at or after the last one found; None when the arm is on
+        neither (the caller then checks the path against the swept obstacles)."""
+        tr = self.trajectory
+        if tr is None or len(tr.times) < 2:
+            return None
+        k = None
+        if self._t_start is not None:
+            i = int(np.clip(np.searchsorted(tr.times, t - self._t_start), self._sample,
+                            len(tr.times) - 1))
+            if np.max(np.abs(tr.positions[i] - q_now)) <= TRACKING_RAD:
+                k = i
+        if k is None:
+            gap = np.max(np.abs(tr.positions[self._sample:] - q_now), axis=1)
+            if float(gap.min()) > TRACKING_RAD:
+                return None
+            k = self._sample + int(np.argmin(gap))
+        self._sample = k
+        rest = slice(k + 1, None) if k + 1 < len(tr.times) else slice(k, None)
+        times = np.concatenate([[0.0], tr.times[rest] - tr.times[k]])
+        if times[-1] <= 0.0:
+            times[-1] = 1e-3
+        return times, np.vstack([q_now[None], tr.positions[rest]])
+
     def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene) -> Event | None:
-        """While holding, move away from an obstacle that comes within the escape distance."""
-        if not shapes.now or self.planner.clearance(q_now, shapes.ahead) > \
-                self.config.escape_clearance_m:
+        """While holding, move away from an obstacle that comes within the escape distance,
+        or from a mover whose predicted region will reach the arm at rest
+        (`GraphPlanner.rest_contact`): evade, don't freeze."""
+        if not shapes.now:
+            return None
+        close = self.planner.clearance(q_now, shapes.ahead) <= self.config.escape_clearance_m
+        if not close and not (shapes.moving and self.planner.rest_contact(
+                q_now, None, shapes) is not None):
             return None
         t0 = time.perf_counter()
         result = self.planner.escape(q_now, shapes)
@@ -244,11 +311,32 @@ class ReactivePlanner:
         if not result.success:
             if self.state == "holding":
                 return None
+            evade = self._evade(q_now, shapes, qd_now)
+            if evade is not None:
+                evade.latency_ms += latency
+                evade.reason = f"{why}; {result.reason}; {evade.reason}"
+                return evade
             return self._hold(f"{why}; {result.reason}", result, latency)
         self.stats.replans += 1
         self.stats.replan_latency_ms.append(latency)
         event = self._execute(result, latency)
         event.reason = why
+        return event
+
+    def _evade(self, q_now: np.ndarray, shapes: Scene,
+               qd_now: np.ndarray | None) -> Event | None:
+        """Where no route is certified: None (stop here) when braking in place and resting
+        is certified against the movers' predictions, else a certified escape move from
+        where the arm brakes to (None when there is none: stopping is then the best left)."""
+        if not shapes.moving or self.planner.rest_contact(q_now, qd_now, shapes) is None:
+            return None
+        t0 = time.perf_counter()
+        result = self.planner.escape(q_now, shapes, qd_now=qd_now)
+        if not result.success:
+            return None
+        self.stats.escapes += 1
+        event = self._execute(result, 1e3 * (time.perf_counter() - t0))
+        event.reason = "a mover's prediction reaches where the arm would stop; " + result.reason
         return event
 
     def _stalled(self, t: float, q_now: np.ndarray) -> bool:
@@ -267,6 +355,7 @@ class ReactivePlanner:
         self.state = "executing"
         self.path = result.path
         self.segment = 0
+        self.trajectory, self._t_start, self._sample = result.trajectory, None, 0
         return Event("trajectory", "", result, latency)
 
     def _hold(self, reason: str, result: PlanResult | None = None, latency: float = 0.0) -> Event:

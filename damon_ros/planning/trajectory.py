@@ -23,6 +23,7 @@ velocities and accelerations.
 from __future__ import annotations
 
 import bisect
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -455,6 +456,42 @@ def stop_trajectory(q, qd, limits: JointLimits, coast_s: float = 0.0,
     sd[-1] = sdd[-1] = 0.0
     positions = np.clip(q + np.outer(s, qd), limits.lower, limits.upper)
     return Trajectory(times, positions, np.outer(sd, qd), np.outer(sdd, qd))
+
+
+def braking_states(q, qd, limits: JointLimits, coast_s: float = 0.0,
+                   per_phase: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(times, positions) of `stop_trajectory` from ``q`` moving at ``qd``, a few samples a
+    phase, in closed form: the same coast, then the time-optimal jerk-limited brake of the
+    normalised speed from 1 to 0 (jerk down, constant deceleration if the limit is reached,
+    jerk up), scaled by ``qd``. For checks that must ask "can the arm stop from here?" at
+    many states: Ruckig and the 10 ms sampling of the real stop cost ~0.5 ms a state, this
+    ~30 us; the checker subdivides between samples by its own resolution rules. At rest
+    (below AT_REST_RAD_S): the hold, one state."""
+    q = np.asarray(q, dtype=float)
+    if qd is None or not np.all(np.isfinite(qd)) or np.max(np.abs(qd)) < AT_REST_RAD_S:
+        return np.array([0.0, HOLD_S]), np.vstack((q, q))
+    qd = np.clip(np.asarray(qd, dtype=float), -limits.velocity, limits.velocity)
+    moving = np.abs(qd) > 0.0
+    acc = float(np.min(limits.acceleration[moving] / np.abs(qd[moving])))
+    jerk = float(np.min(limits.jerk[moving] / np.abs(qd[moving])))
+    ramp = min(acc / jerk, math.sqrt(1.0 / jerk))  # the deceleration's rise (and fall) time
+    peak = jerk * ramp
+    cruise = max(0.0, (1.0 - peak * ramp) / peak)
+    phases = ((ramp, -jerk), (cruise, 0.0), (ramp, jerk))
+    coast_s = max(float(coast_s), 0.0)
+    times, s = [0.0, coast_s], [0.0, coast_s]
+    x, v, a, t = coast_s, 1.0, 0.0, coast_s
+    for duration, j in phases:
+        for tau in np.linspace(0.0, duration, per_phase + 1)[1:] if duration > 0 else ():
+            times.append(t + tau)
+            s.append(x + v * tau + a * tau ** 2 / 2 + j * tau ** 3 / 6)
+        x, v, a = (x + v * duration + a * duration ** 2 / 2 + j * duration ** 3 / 6,
+                   v + a * duration + j * duration ** 2 / 2, a + j * duration)
+        t += duration
+    times, s = np.array(times), np.array(s)
+    keep = np.concatenate([[True], np.diff(times) > 1e-9])
+    positions = np.clip(q + np.outer(s[keep], qd), limits.lower, limits.upper)
+    return times[keep], positions
 
 
 def held_until(traj: Trajectory, end_s: float) -> Trajectory:

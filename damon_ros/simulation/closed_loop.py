@@ -138,7 +138,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     t, q, qd_prev = 0.0, scenario.start.copy(), np.zeros(7)
     next_camera, held_since = 0.0, None
 
-    pending: list = []  # (activation time, event): a decision takes effect once computed
+    pending: list = []  # (activation, decision time, event): takes effect once computed
 
     def decide(event: Event | None, now: float) -> float:
         """Queue a runtime event to act when its computation (measured wall time) is over;
@@ -146,24 +146,29 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
         if event is None:
             return now
         ready = now + event.latency_ms / 1e3
-        pending.append((ready, event))
+        pending.append((ready, now, event))
         return ready
 
     def act(now: float) -> None:
         while pending and pending[0][0] <= now:
-            _, event = pending.pop(0)
+            _, decided, event = pending.pop(0)
             if event.kind == "trajectory":
                 tr = event.result.trajectory
+                # one that starts moving (a brake from the measured state, then a route or
+                # an escape) is stamped with the time of that state, as the node stamps its
+                # brakes: the arm has coasted on along it while it was computed, and is
+                # taken from there, not sent back to its first point (a jump refused)
+                start = decided if np.any(tr.velocities[0] != 0.0) else now
                 try:
                     follower.set_trajectory(tr.times, tr.positions, tr.velocities,
-                                            tr.accelerations, start_time=now)
+                                            tr.accelerations, start_time=start)
                 except ValueError:  # as the controller node: refused, what runs goes on
                     record.trajectories_refused += 1
             elif event.kind == "hold":
                 follower.hold(sim.q)
 
     t0 = time.perf_counter()
-    event = runtime.set_goal(q, goal, perception.observe(t))
+    event = runtime.set_goal(q, goal, perception.observe(t), t=t)
     record.planning_time_s = time.perf_counter() - t0
     waiting = None  # (since, reason): the goal waits for a better view (`_unseen_refusal`)
     if event.kind == "refused":

@@ -1,0 +1,160 @@
+"""A certified stop at every instant, the running trajectory re-checked in space and time,
+and a holding arm that evades a mover instead of freezing in its way."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from damon_ros.core.limits import READY, joint_limits
+from damon_ros.core.robot import Robot
+from damon_ros.core.shapes import Shape
+from damon_ros.learning.bundle import DamonModel
+from damon_ros.planning.graph_planner import (
+    BRAKE_LATENCY_S,
+    REST_HORIZON_S,
+    GraphPlanner,
+    PlannerConfig,
+    Scene,
+)
+from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
+from damon_ros.planning.space_time import Prediction, first_contact
+from damon_ros.planning.trajectory import braking_states, stop_trajectory, time_parameterize
+
+CONFIG = PlannerConfig(time_budget_s=5.0, handover_s=5.0)  # see test_planner.TEST_CONFIG
+AGE = 0.033
+
+
+@pytest.fixture(scope="module")
+def fast() -> Robot:
+    return Robot("fast")
+
+
+@pytest.fixture(scope="module")
+def planner(fast) -> GraphPlanner:
+    p = GraphPlanner(DamonModel.load().graph, fast, joint_limits("panda"), CONFIG)
+    p.warm_up()
+    return p
+
+
+def _long_move():
+    goal = READY.copy()
+    goal[0] += 2.2
+    return READY.copy(), goal
+
+
+def test_braking_states_are_the_stop_the_runtime_sends():
+    limits = joint_limits("panda")
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), limits, 0.9, 0.8, 0.8, dt=0.01)
+    for i in (3, len(tr.times) // 4, len(tr.times) // 2):
+        stop = stop_trajectory(tr.positions[i], tr.velocities[i], limits,
+                               coast_s=BRAKE_LATENCY_S)
+        times, states = braking_states(tr.positions[i], tr.velocities[i], limits,
+                                       BRAKE_LATENCY_S)
+        assert times[-1] == pytest.approx(stop.duration, abs=1e-6)
+        for t, q in zip(times, states, strict=True):
+            assert np.max(np.abs(stop.sample(t)[0] - q)) < 1e-5
+    times, states = braking_states(q0, np.zeros(7), limits)  # at rest: the hold
+    assert np.allclose(states, q0)
+
+
+def _rising_scenes(fast: Robot, trajectory, rng: np.random.Generator, n: int):
+    """Balls at 0.3-1.2 m/s rising through where the hand will be at random times of the
+    trajectory, 0.05-0.4 s after it passed there, and on away from the robot (upward and
+    outward: a ball that flies on into the robot leaves no goal to rest at), reported AGE
+    s ago."""
+    for _ in range(n):
+        at = rng.uniform(0.3, 0.9) * trajectory.duration
+        target, _ = fast.tcp_pose(trajectory.sample(at)[0])
+        radial = np.array([target[0], target[1], 0.0]) / np.linalg.norm(target[:2])
+        d = (np.cross([0.0, 0.0, 1.0], radial) * rng.uniform(-1, 1)
+             + radial * rng.uniform(0, 1) + np.array([0.0, 0.0, 1.0]))
+        v = rng.uniform(0.3, 1.2) * d / np.linalg.norm(d)
+        delay = rng.uniform(0.05, 0.4)
+        yield Shape("sphere", (0.05,), target - v * (at + delay + AGE), name="ball"), v
+
+
+def test_every_published_trajectory_keeps_a_certified_stop_from_each_state(planner, fast):
+    """Property, from every sample (10 ms apart, denser than the planner's checks): the
+    stop from there — coast, then the full-limit brake; at the end, resting there — stays
+    out of each mover's predicted region by the margin the planner certifies (λ, or the
+    start margin from the movers, less the half time step its checks add). The balls
+    cross the hand's way just after it passed: some trajectories are then clear while a
+    stop on them, or the goal right after the arrival, is not (without the stop check
+    such a trajectory is published)."""
+    q0, q1 = _long_move()
+    free = planner.plan(q0, q1, ())
+    limits, prediction = planner.limits, planner.config.prediction
+    rng = np.random.default_rng(7)
+    published = 0
+    for ball, v in _rising_scenes(fast, free.trajectory, rng, 80):
+        scene = Scene((ball,), (swept(ball, v, 0.3),), ((ball, v),), AGE)
+        result = planner.plan(q0, q1, scene)
+        if not result.success:
+            continue
+        published += 1
+        margin = planner._mover_margin(q0, scene) - 0.5 * prediction.step_m
+        tr = result.trajectory
+        for i in range(len(tr.times)):
+            times, states = braking_states(tr.positions[i], tr.velocities[i], limits,
+                                           BRAKE_LATENCY_S)
+            if i == len(tr.times) - 1:  # arrived: it stays there
+                times, states = np.array([0.0, REST_HORIZON_S]), states[[0, -1]]
+            assert first_contact(fast, times, states, [(ball, v)], margin,
+                                 planner.config.resolution, prediction,
+                                 AGE + float(tr.times[i])) is None, (i, tr.times[i])
+    assert published >= 2
+
+
+def _executing(planner: GraphPlanner, space_time: bool) -> ReactivePlanner:
+    runtime = ReactivePlanner(planner, RuntimeConfig(space_time=space_time))
+    q0, q1 = _long_move()
+    event = runtime.set_goal(q0, q1, [], t=0.0)
+    assert event.kind == "trajectory"
+    return runtime
+
+
+def test_the_running_trajectory_is_rechecked_where_each_mover_will_be(planner, fast):
+    q0, _ = _long_move()
+    zero = np.zeros(7)
+    runtime = _executing(planner, True)
+    tr = runtime.trajectory
+    # one moving away beside the path: its 0.3 s sweep reaches the path, the ball never does
+    mid, _ = fast.tcp_pose(tr.sample(0.5 * tr.duration)[0])
+    outward = np.array([mid[0], mid[1], 0.0]) / np.linalg.norm(mid[:2])
+    away = [(Shape("sphere", (0.05,), mid + np.array([0.0, 0.0, 0.12])), 1.0 * outward)]
+    assert runtime.update(0.0, q0, away, qd_now=zero) is None
+    assert _executing(planner, False).update(0.0, q0, away, qd_now=zero) is not None
+    # one that will hit the hand late in the trajectory, far beyond the sweep now
+    at = 0.8 * tr.duration
+    target, _ = fast.tcp_pose(tr.sample(at)[0])
+    radial = np.array([target[0], target[1], 0.0]) / np.linalg.norm(target[:2])
+    diver = [(Shape("sphere", (0.05,), target + 0.3 * radial * (at + AGE)), -0.3 * radial)]
+    assert _executing(planner, False).update(0.0, q0, diver, qd_now=zero) is None
+    assert _executing(planner, True).update(0.0, q0, diver, qd_now=zero) is not None
+
+
+def test_a_holding_arm_in_a_movers_path_evades(planner, fast):
+    """A ball 0.45 m away comes at the hand at 0.8 m/s: farther than the escape distance
+    (the old rule waits until it is within 5 cm, 0.5 s later), but its predicted region
+    reaches the arm at rest within the rest horizon. The arm moves, and where it goes it
+    stays clear of the ball's true motion."""
+    q = READY.copy()
+    hand, _ = fast.tcp_pose(q)
+    v = np.array([0.0, -0.8, 0.0])
+    ball = Shape("sphere", (0.05,), hand - v / 0.8 * 0.45, name="ball")
+    for space_time, evades in ((False, False), (True, True)):
+        runtime = ReactivePlanner(planner, RuntimeConfig(space_time=space_time))
+        runtime.state = "holding"
+        planner.goal_q = None  # nothing to resume toward: only the escape can move it
+        event = runtime.update(0.0, q, [(ball, v)], qd_now=np.zeros(7))
+        assert (event is not None and event.kind == "trajectory") == evades
+    tr = event.result.trajectory
+    assert "escaping" in event.reason
+    times = np.concatenate([tr.times, tr.duration + np.linspace(0.01, 1.0, 50)])
+    states = np.vstack([tr.positions, np.repeat(tr.positions[-1:], 50, axis=0)])
+    gaps = [float(fast.distances(s[None], [ball.moved_to(ball.position + v * (t + AGE))])[0])
+            for t, s in zip(times, states, strict=True)]
+    assert min(gaps) > 0.0
+    assert first_contact(fast, times, states, [(ball, v)], 0.0, 0.02, Prediction(), AGE) is None
