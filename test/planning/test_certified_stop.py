@@ -5,42 +5,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_space_time import AGE, _long_move  # the space-time tests' move and data age
 
 from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
-from damon_ros.learning.bundle import DamonModel
 from damon_ros.planning.graph_planner import (
     BRAKE_LATENCY_S,
     REST_HORIZON_S,
     GraphPlanner,
-    PlannerConfig,
     Scene,
 )
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
 from damon_ros.planning.space_time import Prediction, first_contact
 from damon_ros.planning.trajectory import braking_states, stop_trajectory, time_parameterize
-
-CONFIG = PlannerConfig(time_budget_s=5.0, handover_s=5.0)  # see test_planner.TEST_CONFIG
-AGE = 0.033
-
-
-@pytest.fixture(scope="module")
-def fast() -> Robot:
-    return Robot("fast")
-
-
-@pytest.fixture(scope="module")
-def planner(fast) -> GraphPlanner:
-    p = GraphPlanner(DamonModel.load().graph, fast, joint_limits("panda"), CONFIG)
-    p.warm_up()
-    return p
-
-
-def _long_move():
-    goal = READY.copy()
-    goal[0] += 2.2
-    return READY.copy(), goal
 
 
 def test_braking_states_are_the_stop_the_runtime_sends():

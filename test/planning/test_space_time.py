@@ -5,33 +5,18 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import pytest
 
 from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
-from damon_ros.learning.bundle import DamonModel
 from damon_ros.planning import graph_planner
-from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, Scene
+from damon_ros.planning.graph_planner import Scene
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
 from damon_ros.planning.space_time import Prediction, check_instants, first_contact
 from damon_ros.planning.trajectory import time_parameterize
 
-CONFIG = PlannerConfig(time_budget_s=5.0, handover_s=5.0)  # see test_planner.TEST_CONFIG
 AGE = 0.033
 HORIZON = RuntimeConfig().prediction_horizon_s  # the bench's fixed sweep, 0.3 s
-
-
-@pytest.fixture(scope="module")
-def fast() -> Robot:
-    return Robot("fast")
-
-
-@pytest.fixture(scope="module")
-def planner(fast) -> GraphPlanner:
-    p = GraphPlanner(DamonModel.load().graph, fast, joint_limits("panda"), CONFIG)
-    p.warm_up()
-    return p
 
 
 def _long_move():
