@@ -274,10 +274,15 @@ class PlannerNode(Node):
         o = msg.pose.orientation
         goal = PoseGoal(np.array([msg.pose.position.x, msg.pose.position.y,
                                   msg.pose.position.z]), np.array([o.x, o.y, o.z, o.w]))
+        return self._decide_goal(goal, q, qd, received, None)
+
+    def _decide_goal(self, goal, q: np.ndarray, qd, received: float, waiting: tuple | None):
+        """Plan ``goal`` with the obstacles now and act on the outcome (`_unseen` first);
+        ``waiting`` is the goal's wait for a better view in force (None: a new goal)."""
         with self.deciding:
+            self._unseen_goal = waiting
             obstacles, age = self._perception()
             event = self.runtime.set_goal(q, goal, obstacles, perception_age_s=age, qd_now=qd)
-            self._unseen_goal = None
             event = self._unseen(event, goal, q)
             self._act(event, received, "goal")
         return event
@@ -325,13 +330,7 @@ class PlannerNode(Node):
         q, qd = self._current_state()
         if q is None:
             return
-        received = time.perf_counter()
-        with self.deciding:
-            self._unseen_goal = (goal, since, now)
-            obstacles, age = self._perception()
-            event = self.runtime.set_goal(q, goal, obstacles, perception_age_s=age, qd_now=qd)
-            event = self._unseen(event, goal, q)
-            self._act(event, received, "goal")
+        self._decide_goal(goal, q, qd, time.perf_counter(), (goal, since, now))
 
     # ---- the loop ---------------------------------------------------------------------
     def _monitor(self) -> None:

@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     from damon_ros.perception.camera import load_cameras
 
     try:
+        args.cameras = [camera.strip() for camera in args.cameras.split(",")]
         load_cameras(args.cameras)
     except (OSError, ValueError) as exc:
         print(f"damon-ros demo: --cameras: {exc}", file=sys.stderr)
@@ -132,8 +133,7 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
                                         **_camera_params(args.cameras, 0)}, None),
     }
     if not args.no_camera:
-        extra = args.cameras.split(",")[1:]
-        for i, _ in enumerate(extra, start=1):  # node name = key: the clock reaches it
+        for i in range(1, len(args.cameras)):  # node name = key: the clock reaches it
             nodes[f"mock_camera_{i}"] = ("mock_camera", {**common, **_camera_params(
                 args.cameras, i)}, {"__node": f"mock_camera_{i}"})
         nodes["tracker"] = ("tracker", _tracker_params(args.cameras), None)
@@ -152,21 +152,23 @@ def run_demo(scenario, path: Path, domain: int, out: Path, args) -> dict:
                       file=sys.stderr)
 
 
-def _camera_params(cameras: str, i: int) -> dict:
+def _camera_prefix(i: int) -> str:
+    """Topic prefix of camera ``i`` of the list: the first keeps the default topics."""
+    return topics.CAMERA_PREFIX if i == 0 else f"camera_{i}/camera"
+
+
+def _camera_params(files: list[str], i: int) -> dict:
     """mock_camera parameters of camera ``i`` of the list: its file and, with several, its
     own topics and noise seed, only the first publishing the ground truth, all in sync."""
-    files = [c.strip() for c in cameras.split(",")]
     if len(files) == 1:
         return {"camera_config": files[0]}
     return {"camera_config": files[i], "sync_stamps": True,
-            **({} if i == 0 else {"camera_prefix": f"camera_{i}/camera", "seed": i,
+            **({} if i == 0 else {"camera_prefix": _camera_prefix(i), "seed": i,
                                   "publish_ground_truth": False})}
 
 
-def _tracker_params(cameras: str) -> dict:
-    files = [c.strip() for c in cameras.split(",")]
-    return {"cameras": [topics.CAMERA_PREFIX] + [f"camera_{i}/camera"
-                                                 for i in range(1, len(files))],
+def _tracker_params(files: list[str]) -> dict:
+    return {"cameras": [_camera_prefix(i) for i in range(len(files))],
             "camera_configs": files}
 
 
