@@ -77,6 +77,23 @@ PARAMETERS = (
     Param("jerk_scale", 0.5, "fraction of the profile's jerk limits", 0.01, 1.0),
     Param("prediction_horizon_s", 1.0, "obstacles are swept along their velocity this far "
           "ahead (s): at least the time a decision takes to reach the arm", 0.0, 5.0),
+    # the movers' prediction model of space-time certification (planning/space_time.py):
+    # a report at p, v, age a is inside its shape moved by v*tau, grown by
+    # sigma_p + (sigma_v + kappa*|v|)*tau + a_max*tau^2/2 at tau = a + t
+    Param("prediction_position_sigma_m", 0.005, "sigma_p: error of a reported obstacle "
+          "position (m; the tracker's noise)", 0.0, 0.5),
+    Param("prediction_velocity_sigma_m_s", 0.05, "sigma_v: absolute error of a reported "
+          "velocity (m/s)", 0.0, 5.0),
+    Param("prediction_velocity_sigma_rel", 0.1, "kappa: relative error of a reported "
+          "velocity", 0.0, 2.0),
+    Param("prediction_acceleration_m_s2", 0.0, "a_max: unmodelled obstacle acceleration "
+          "(m/s^2; 0 = constant velocity)", 0.0, 50.0),
+    Param("prediction_min_age_s", 0.033, "obstacle data is taken as at least this old (s; "
+          "one camera frame) when its stamp says less", 0.0, 1.0),
+    Param("prediction_step_m", 0.01, "most a mover's predicted region may move or grow "
+          "between two checked instants (m)", 0.001, 0.1),
+    Param("prediction_moving_speed_m_s", 0.05, "obstacles reported slower are static "
+          "(m/s; above a still box's velocity jitter)", 0.0, 1.0),
     Param("monitor_rate_hz", 20.0, "fixed-rate re-check of the remaining path (Hz)",
           0.5, 1000.0),
     Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
@@ -122,6 +139,7 @@ class PlannerNode(Node):
         from damon_ros.learning.bundle import DamonModel, ModelError
         from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
         from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig
+        from damon_ros.planning.space_time import Prediction
         from damon_ros.ros.markers import ObstacleTable
 
         p = declare_all(self, PARAMETERS)
@@ -139,7 +157,14 @@ class PlannerNode(Node):
                                acceleration_scale=p["acceleration_scale"],
                                jerk_scale=p["jerk_scale"], time_budget_s=p["time_budget_s"],
                                fallback_budget_s=p["fallback_budget_s"],
-                               handover_s=p["handover_s"])
+                               handover_s=p["handover_s"], prediction=Prediction(
+                                   position_sigma_m=p["prediction_position_sigma_m"],
+                                   velocity_sigma_m_s=p["prediction_velocity_sigma_m_s"],
+                                   velocity_sigma_rel=p["prediction_velocity_sigma_rel"],
+                                   acceleration_m_s2=p["prediction_acceleration_m_s2"],
+                                   min_age_s=p["prediction_min_age_s"],
+                                   step_m=p["prediction_step_m"],
+                                   moving_speed_m_s=p["prediction_moving_speed_m_s"]))
         planner = GraphPlanner(self.model.graph, self.robot, self.limits, config)
         planner.warm_up()
         # TCP positions of every vertex, for the graph markers (not on the first goal's path)

@@ -197,3 +197,15 @@ def test_controller_declares_per_joint_parameters_for_its_own_joints():
     assert [p.default for p in fr3] == [p.default for p in panda]
     assert {"gains.fr3_joint7.ff_velocity_scale", "constraints.fr3_joint1.trajectory",
             "constraints.fr3_joint1.goal"} <= {p.name for p in fr3}
+
+
+def test_planner_prediction_parameters_default_to_the_model():
+    """The node's ``prediction_*`` table starts where the library's `Prediction` does, term
+    for term, so a node run with its defaults certifies as the bench and the tests do."""
+    from dataclasses import fields
+
+    from damon_ros.planning.space_time import Prediction
+
+    table = {p.name: p.default for p in planner.PARAMETERS}
+    for field in fields(Prediction):
+        assert table[f"prediction_{field.name}"] == getattr(Prediction(), field.name), field.name
