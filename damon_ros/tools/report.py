@@ -122,6 +122,106 @@ def mbm_table(records: list[dict]) -> list[str]:
     return lines
 
 
+def _band_key(band: str) -> float:
+    """Bands in order of speed ("0.1-0.3 m/s" < "0.3-0.6 m/s" ...); others last."""
+    try:
+        return float(band.split("-")[0])
+    except ValueError:
+        return math.inf
+
+
+def _stress_groups(runs: dict[str, list[dict]]):
+    """{(band, planner): {label: records}} over every labelled run of the stress bench."""
+    by: dict[tuple[str, str], dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for label, records in runs.items():
+        for r in records:
+            if r.get("planner") and r.get("band") not in (None, "static", "other"):
+                by[(r["band"], r["planner"])][label].append(r)
+    return dict(sorted(by.items(), key=lambda kv: (_band_key(kv[0][0]), kv[0][1])))
+
+
+def stress_table(runs: dict[str, list[dict]]) -> list[str]:
+    """Per speed band and planner, for each labelled run (ideal perception, latency and
+    noise, ...): success, contacts, the least clearance of all runs on the exact meshes, and
+    the re-route latency p50/p99."""
+    labels = list(runs)
+    head = "| band | planner | " + " | ".join(
+        f"{label}: success | contacts | least clearance (mm) | re-route p50 / p99 (ms)"
+        for label in labels) + " |"
+    lines = [head, "|---|---|" + "---|---|---|---|" * len(labels)]
+    for (band, planner), per_label in _stress_groups(runs).items():
+        cells = []
+        for label in labels:
+            rs = per_label.get(label, [])
+            if not rs:
+                cells.append("– | – | – | –")
+                continue
+            ok = sum(bool(r.get("success")) for r in rs)
+            clear = [1e3 * r["min_clearance_m"] for r in rs
+                     if r.get("min_clearance_m") is not None]
+            replans = [x for r in rs for x in (r.get("replan_latency_ms") or [])]
+            cells.append(f"{ok}/{len(rs)} ({100 * ok / len(rs):.1f} %) | "
+                         f"{sum(bool(r.get('collided')) for r in rs)} | "
+                         f"{_fmt(min(clear, default=math.nan), 1)} | "
+                         f"{_fmt(_p(replans, 50), 1)} / {_fmt(_p(replans, 99), 1)}")
+        lines.append(f"| {band} | {planner} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def stress_plot(runs: dict[str, list[dict]], out_dir: Path) -> Path:
+    """Success per speed band, one line per planner and labelled run, beside the paper's
+    dynamic success (97.8 %, a single number over its dynamic scenes, drawn flat)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = _stress_groups(runs)
+    bands = sorted({band for band, _ in groups}, key=_band_key)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for planner in sorted({p for _, p in groups}):
+        for label in runs:
+            rates = []
+            for band in bands:
+                rs = groups.get((band, planner), {}).get(label, [])
+                rates.append(100 * np.mean([bool(r.get("success")) for r in rs]) if rs
+                             else np.nan)
+            ax.plot(bands, rates, marker="o", label=f"{planner}, {label}")
+    ax.axhline(PAPER_SUCCESS["dynamic"], color="grey", linestyle="--",
+               label=f"paper, dynamic ({PAPER_SUCCESS['dynamic']} %)")
+    ax.set(xlabel="mover speed band", ylabel="success (%)",
+           title="Stress bench: success vs mover speed")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out_dir / "benchmarks_stress.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_section(page: Path, name: str, lines: list[str]) -> None:
+    """Put ``lines`` between ``<!-- name -->`` and ``<!-- /name -->`` in ``page`` (appended
+    the first time); the rest of the page is left as it is."""
+    mark = (f"<!-- {name} -->", f"<!-- /{name} -->")
+    text = page.read_text() if page.exists() else "# Benchmarks\n"
+    block = "\n".join([mark[0], *lines, mark[1]])
+    if mark[0] in text and mark[1] in text:
+        head, rest = text.split(mark[0], 1)
+        text = head + block + rest.split(mark[1], 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    page.write_text(text)
+
+
+def stress_section(runs: dict[str, list[dict]], command: str, out_dir: Path) -> list[str]:
+    figure = stress_plot(runs, out_dir)
+    scenes = {r.get("scenario") for rs in runs.values() for r in rs}
+    return ["## Stress bench: movers crossing the hand's way, per speed band", "",
+            f"`{command}`", "", f"{len(scenes)} scenes; each labelled run is one "
+            "`damon-ros bench --by-band` result file.", "", *stress_table(runs), "",
+            f"![success vs speed]({figure.name})"]
+
+
 def plots(records: list[dict], out_dir: Path) -> list[Path]:
     import matplotlib
 
@@ -152,16 +252,38 @@ def plots(records: list[dict], out_dir: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="damon-ros report",
                                      description="Write docs/BENCHMARKS.md from bench results.")
-    parser.add_argument("--results", required=True, help="public-scenario results (JSON lines)")
-    parser.add_argument("--results-command", required=True,
+    parser.add_argument("--results", default=None,
+                        help="public-scenario results (JSON lines): the whole page anew")
+    parser.add_argument("--results-command", default="",
                         help="the command that produced --results (quoted in the page)")
+    parser.add_argument("--stress", action="append", default=[], metavar="LABEL=FILE",
+                        help="stress-bench results (bench --by-band) under a label, e.g. "
+                             "ideal=s.jsonl; repeat for each perception setting. Alone (no "
+                             "--results): only the page's stress section is rewritten")
+    parser.add_argument("--stress-command", default="",
+                        help="the commands that produced --stress (quoted in the page)")
     parser.add_argument("--mbm", default=None, help="MotionBenchMaker results (JSON lines)")
     parser.add_argument("--mbm-command", default="", help="the command that produced --mbm")
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
     args = parser.parse_args(argv)
-    records = load(args.results)
+    if args.results is None and not args.stress:
+        parser.error("give --results (the whole page) or --stress (its stress section)")
+    if args.results and not args.results_command:
+        parser.error("--results needs --results-command (the page quotes it)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if args.stress:
+        runs = {}
+        for item in args.stress:
+            label, sep, path = item.partition("=")
+            if not sep or not label or not path:
+                parser.error(f"--stress {item!r}: expected LABEL=FILE")
+            runs[label] = load(path)
+        write_section(out, "stress", stress_section(runs, args.stress_command, out.parent))
+        print(f"stress section written to {out}")
+    if args.results is None:
+        return 0
+    records = load(args.results)
     figures = plots(records, out.parent)
     lines = ["# Benchmarks", "",
              "Generated by `damon-ros report` from result files; every number below comes from "
@@ -187,5 +309,5 @@ def _marked_sections(text: str) -> list[str]:
     ``<!-- /name -->`` (the ablation's table): carried over, not lost to a new report."""
     import re
 
-    return [m.group(0) + "\n" for m in re.finditer(r"<!-- (\w+) -->.*?<!-- /\1 -->", text,
+    return [m.group(0) + "\n" for m in re.finditer(r"<!-- ([\w-]+) -->.*?<!-- /\1 -->", text,
                                                    flags=re.S)]

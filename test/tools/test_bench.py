@@ -87,6 +87,38 @@ def test_mbm_table_counts_contacts_refusals_and_every_set_together():
     assert "Refused before planning (1)" in lines[-1]
 
 
+def test_the_stress_section_is_written_per_band_and_kept_apart(tmp_path):
+    from damon_ros.tools.report import main as report
+
+    def run(band, planner, ok, collided, clearance, replans):
+        return {"scenario": f"S-{band}-{planner}-{ok}", "band": band, "planner": planner,
+                "success": ok, "collided": collided, "min_clearance_m": clearance,
+                "replan_latency_ms": replans}
+
+    ideal, noisy = tmp_path / "ideal.jsonl", tmp_path / "noisy.jsonl"
+    ideal.write_text("\n".join(json.dumps(r) for r in [
+        run("1-1.5 m/s", "damon", False, True, -0.001, [4.0]),
+        run("0.1-0.3 m/s", "damon", True, False, 0.02, [2.0, 6.0]),
+        run("0.1-0.3 m/s", "damon", True, False, 0.03, []),
+        run("static", "damon", True, False, 0.05, [])]))
+    noisy.write_text(json.dumps(run("0.1-0.3 m/s", "damon", False, False, 0.01, [])))
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("# Benchmarks\n\nkept text\n")
+    assert report(["--stress", f"ideal={ideal}", "--stress", f"33 ms={noisy}",
+                   "--stress-command", "damon-ros bench --by-band", "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "kept text" in text and text.count("<!-- stress -->") == 1
+    rows = [line for line in text.splitlines() if line.startswith("| 0.1-0.3") or
+            line.startswith("| 1-1.5")]
+    assert rows[0].startswith("| 0.1-0.3 m/s | damon | 2/2 (100.0 %) | 0 | 20.0 | 4.0 / ")
+    assert "| 0/1 (0.0 %) | 0 | 10.0 |" in rows[0]  # the second label's cells
+    assert rows[1].startswith("| 1-1.5 m/s | damon | 0/1 (0.0 %) | 1 | -1.0 |")
+    assert "| static |" not in text and (tmp_path / "benchmarks_stress.png").stat().st_size
+    # a second report replaces the section instead of adding one
+    assert report(["--stress", f"ideal={ideal}", "--out", str(page)]) == 0
+    assert page.read_text().count("<!-- stress -->") == 1
+
+
 def test_the_stress_view_groups_runs_by_mover_speed_band(tmp_path, capsys):
     folder = tmp_path / "stress"
     assert cli(["scenarios", "generate", "--families", "S", "--bands", "0.3:0.6,1.0:1.5",
