@@ -115,6 +115,11 @@ PARAMETERS = (
 )
 
 
+MOVING_START_RAD_S = 1e-6
+"""rad/s: a trajectory whose first sample moves faster than this starts from a moving arm
+and goes out stamped (`_publish_trajectory`); the planner's from a state at rest start at
+exactly zero."""
+
 UNSEEN_RETRY_S = 0.2
 """s between tries of a goal that waits for a better view (`unseen_goal_wait_s`)."""
 
@@ -198,6 +203,7 @@ class PlannerNode(Node):
         self.qd: np.ndarray | None = None
         self.q_stamp = -math.inf
         self.q_measured_at = -math.inf  # the state's header stamp (reception if unset)
+        self._decided_from = -math.inf  # q_measured_at of the state the last decision took
         self.last_event = "idle"
         self.unseen_wait_s = p["unseen_goal_wait_s"]
         self._unseen_goal: tuple | None = None  # (goal, since, last try): see `_unseen`
@@ -252,6 +258,7 @@ class PlannerNode(Node):
         with self.lock:
             if self.q is None or clock_seconds(self) - self.q_stamp > self.joint_state_timeout:
                 return None, None
+            self._decided_from = self.q_measured_at  # a trajectory from it: `_start_stamp`
             return self.q.copy(), None if self.qd is None else self.qd.copy()
 
     def _perception(self) -> tuple[list, float]:
@@ -279,12 +286,16 @@ class PlannerNode(Node):
         self._set_goal(msg, time.perf_counter())
 
     def _set_goal(self, msg: PoseStamped, received: float):
-        from damon_ros.planning.graph_planner import PoseGoal
-
         problem = goal_problem(msg, self.base_frame)
         if problem:
             self.refusals.report(f"goal refused: {problem}", problem.kind)
             return None
+        with self.deciding:  # the state and the decision from it under one hold
+            return self._plan_goal(msg, received)
+
+    def _plan_goal(self, msg: PoseStamped, received: float):
+        from damon_ros.planning.graph_planner import PoseGoal
+
         q, qd = self._current_state()
         if q is None:
             age = clock_seconds(self) - self.q_stamp
@@ -352,10 +363,10 @@ class PlannerNode(Node):
         now = clock_seconds(self)
         if now - tried < UNSEEN_RETRY_S or self.runtime.state not in ("idle", "reached"):
             return
-        q, qd = self._current_state()
-        if q is None:
-            return
-        self._decide_goal(goal, q, qd, time.perf_counter(), (goal, since, now))
+        with self.deciding:
+            q, qd = self._current_state()
+            if q is not None:
+                self._decide_goal(goal, q, qd, time.perf_counter(), (goal, since, now))
 
     # ---- the loop ---------------------------------------------------------------------
     def _monitor(self) -> None:
@@ -364,10 +375,10 @@ class PlannerNode(Node):
         self._step(time.perf_counter())
 
     def _step(self, received: float) -> None:
-        q, qd = self._current_state()
-        if q is None or self.runtime.state in ("idle", "reached"):
-            return
-        with self.deciding:
+        with self.deciding:  # the state and the decision from it under one hold
+            q, qd = self._current_state()
+            if q is None or self.runtime.state in ("idle", "reached"):
+                return
             obstacles, age = self._perception()
             event = self.runtime.update(clock_seconds(self), q, obstacles,
                                         perception_age_s=age, qd_now=qd)
@@ -452,7 +463,19 @@ class PlannerNode(Node):
         return msg
 
     def _publish_trajectory(self, result) -> None:
-        self.pub_traj.publish(self._trajectory_msg(result.trajectory.resample(0.02)))
+        """A route from an arm at rest starts on arrival (zero stamp). One from a moving
+        arm (`GraphPlanner._route_moving`: a brake along the line, then the route) starts
+        at the measured state's position *and velocity*, where the arm was when the state
+        was measured: it goes out stamped with that time, like a stop (`_publish_stop`), so
+        the controller takes it from where the coasting arm is by now; unstamped, it would
+        ask the arm to be back there on arrival."""
+        traj = result.trajectory.resample(0.02)
+        if float(np.max(np.abs(traj.velocities[0]))) < MOVING_START_RAD_S:
+            msg = self._trajectory_msg(traj)
+        else:
+            msg = self._trajectory_msg(traj, first=1)
+            msg.header.stamp = to_stamp(self._decided_from)
+        self.pub_traj.publish(msg)
         self._to_show = result  # its path and graph markers: `_publish_visualisation`
 
     def _publish_visualisation(self) -> None:

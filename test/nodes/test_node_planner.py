@@ -356,10 +356,17 @@ def test_a_bad_marker_is_refused_with_one_line(cell: Cell, case, words):
 def test_a_new_goal_while_moving_replaces_the_old_one(cell: Cell):
     assert cell.settle()
     plans = len(cell.lines("planner", "plan:"))
+    sent = len(cell.trajectories)
     cell.goal_pub.publish(goal_msg(*GOAL_A))
     assert cell.ros.spin_until(cell.moving, 10.0), cell.logs()
     assert cell.reach(GOAL_B), cell.logs()
     assert len(cell.lines("planner", "plan:")) == plans + 2
+    # from rest: starts on arrival; from the moving arm: a brake from the measured state
+    # first, stamped with the time that state was measured (the arm has coasted on since)
+    from_rest, from_moving = cell.trajectories.messages[sent:sent + 2]
+    assert from_rest.header.stamp.sec == 0 and from_rest.header.stamp.nanosec == 0
+    assert from_moving.header.stamp.sec > 0
+    assert max(abs(v) for v in from_moving.points[0].velocities) > 0.05
     # the route for RViz follows (from the status timer, off the reaction path) and ends
     # at the goal's TCP position
     assert cell.ros.spin_until(lambda: len(cell.paths) and np.linalg.norm(
