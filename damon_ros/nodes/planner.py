@@ -377,7 +377,7 @@ class PlannerNode(Node):
     def _step(self, received: float) -> None:
         with self.deciding:  # the state and the decision from it under one hold
             q, qd = self._current_state()
-            if q is None or self.runtime.state in ("idle", "reached"):
+            if q is None or self.runtime.state == "idle":  # "reached": movers may come
                 return
             obstacles, age = self._perception()
             event = self.runtime.update(clock_seconds(self), q, obstacles,

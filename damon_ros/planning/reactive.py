@@ -199,9 +199,11 @@ class ReactivePlanner:
                 obstacles: Sequence[tuple[Shape, np.ndarray]],
                 perception_age_s: float = 0.0,
                 qd_now: np.ndarray | None = None) -> Event | None:
-        if self.state in ("idle", "reached"):
+        if self.state == "idle" or (self.state == "reached" and not obstacles):
             return None
         q_now = np.asarray(q_now, float)
+        if self.state == "reached":
+            return self._evade_at_goal(q_now, self.scene(obstacles, _age(perception_age_s)))
         timeout = self.config.perception_timeout_s
         if timeout > 0 and perception_age_s > timeout and self.state == "executing":
             return self._hold(f"obstacle data is {perception_age_s:.2f} s old "
@@ -294,14 +296,30 @@ class ReactivePlanner:
         if not close and not (shapes.moving and self.planner.rest_contact(
                 q_now, None, shapes) is not None):
             return None
+        return self._escape(q_now, shapes, "")
+
+    def _escape(self, q_now: np.ndarray, shapes: Scene, why: str) -> Event | None:
+        """A certified escape move as a trajectory event, or None when there is none."""
         t0 = time.perf_counter()
         result = self.planner.escape(q_now, shapes)
         if not result.success:
             return None
         self.stats.escapes += 1
         event = self._execute(result, 1e3 * (time.perf_counter() - t0))
-        event.reason = result.reason
+        event.reason = why + result.reason
         return event
+
+    def _evade_at_goal(self, q_now: np.ndarray, shapes: Scene) -> Event | None:
+        """An arm at rest on its goal still gets out of a mover's way: when a mover's
+        predicted region reaches it within the rest horizon (`GraphPlanner.rest_contact`),
+        a certified escape move, after which it holds and returns to the goal once a
+        route is certified again. Only movers count here: a goal may lie millimetres from
+        a static object (a grasp), which is no reason to leave it. In generated scenes a
+        sphere diving onto the arm resting at its goal touched it (G family, 3 of 380)."""
+        if not shapes.moving or self.planner.rest_contact(q_now, None, shapes) is None:
+            return None
+        return self._escape(q_now, shapes, "a mover is predicted to reach the arm at its "
+                            "goal; ")
 
     def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str,
                  qd_now: np.ndarray | None = None) -> Event | None:

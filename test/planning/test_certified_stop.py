@@ -136,3 +136,37 @@ def test_a_holding_arm_in_a_movers_path_evades(planner, fast):
             for t, s in zip(times, states, strict=True)]
     assert min(gaps) > 0.0
     assert first_contact(fast, times, states, [(ball, v)], 0.0, 0.02, Prediction(), AGE) is None
+
+
+def test_an_arm_resting_on_its_goal_gets_out_of_a_movers_way_and_returns(planner, fast):
+    """The goal reached, a ball comes at the hand: the arm at its goal evades like a
+    holding one (a sphere diving onto an arm at rest on its goal touched it in generated
+    G scenes), then holds and plans back to the goal. A ball going elsewhere, or a static
+    object beside the goal, does not move it."""
+    q0, q1 = _long_move()
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
+    assert runtime.update(9.0, q1, [], qd_now=np.zeros(7)).kind == "reached"
+    hand, _ = fast.tcp_pose(q1)
+    radial = np.array([hand[0], hand[1], 0.0]) / np.linalg.norm(hand[:2])
+    across = np.array([-radial[1], radial[0], 0.0])  # it crosses the hand's place
+    v = -0.8 * across
+    ball = Shape("sphere", (0.05,), hand + 0.45 * across, name="ball")
+    elsewhere = (ball.moved_to(hand + 0.45 * across + np.array([0.0, 0.0, 0.5])), v)
+    beside = (Shape("box", (0.05, 0.05, 0.05), hand + np.array([0.0, 0.0, -0.12])), np.zeros(3))
+    assert runtime.update(9.1, q1, [elsewhere, beside], qd_now=np.zeros(7)) is None
+    assert runtime.state == "reached"
+    event = runtime.update(9.2, q1, [(ball, v), beside], qd_now=np.zeros(7))
+    assert event is not None and event.kind == "trajectory", event
+    assert "reach the arm at its goal" in event.reason and "escaping" in event.reason
+    tr = event.result.trajectory
+    times = np.concatenate([tr.times, tr.duration + np.linspace(0.01, 1.0, 50)])
+    states = np.vstack([tr.positions, np.repeat(tr.positions[-1:], 50, axis=0)])
+    assert first_contact(fast, times, states, [(ball, v)], 0.0, 0.02, Prediction(), AGE) is None
+    # at the escape's end it holds, and plans back to the goal once the ball is gone
+    assert runtime.update(9.2 + tr.duration, tr.positions[-1], [beside],
+                          qd_now=np.zeros(7)) is None
+    assert runtime.state == "holding"
+    back = runtime.update(20.0, tr.positions[-1], [beside], qd_now=np.zeros(7))
+    assert back is not None and back.kind == "trajectory"
+    assert np.allclose(back.result.path[-1], q1)
