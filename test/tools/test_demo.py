@@ -111,6 +111,41 @@ def test_an_obstacle_moved_into_the_path_is_avoided(tmp_path, crossing_scenario)
     assert _reroutes(run.stdout) >= 1, run.stdout
 
 
+def test_default_demo_puts_the_ball_on_the_first_route():
+    """`make demo`'s settings make its dodge necessary, not a matter of the tracker's noise:
+    the route planned when the goal is sent (D-001's ball still parked: no mover to plan
+    around) is the graph's, and the arm that followed it as planned would meet the ball on
+    the exact meshes — also with the goal up to 0.2 s late (the node's latency)."""
+    from damon_ros.core.scenario import load_scenario
+    from damon_ros.learning.bundle import DamonModel
+    from damon_ros.nodes.planner import PARAMETERS
+    from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
+    from damon_ros.simulation.closed_loop import pose_goal
+    from damon_ros.tools.demo import DEFAULT_GOAL_AT_S, DEFAULT_PLANNER, DEFAULT_SCENARIO
+
+    scenario = load_scenario(public_scenarios_dir() / DEFAULT_SCENARIO)
+    ball = next(o for o in scenario.obstacles if o.is_dynamic)
+    assert not np.any(ball.velocity_at(DEFAULT_GOAL_AT_S))  # parked when the goal comes
+    node = {p.name: p.default for p in PARAMETERS} | DEFAULT_PLANNER
+    fields = ("margin", "resolution", "velocity_scale", "acceleration_scale", "jerk_scale",
+              "time_budget_s", "fallback_budget_s", "handover_s")
+    robot = Robot("fast")
+    planner = GraphPlanner(DamonModel.load().graph, robot, robot.limits,
+                           PlannerConfig(**{f: node[f] for f in fields}))
+    plan = planner.plan(scenario.start, pose_goal(scenario), scenario.obstacles_at(0.0))
+    assert plan.success and plan.source == "graph", plan.reason
+    traj = plan.trajectory
+    times = np.append(traj.times[::5], traj.times[-1] + np.arange(0.1, 10.0, 0.1))
+    states = np.vstack([traj.positions[::5]] + [traj.positions[-1:]] * (len(times) - len(
+        traj.times[::5])))
+    mesh = Robot("mesh")
+    for late in (0.0, 0.1, 0.2):
+        t0 = DEFAULT_GOAL_AT_S + late
+        closest = min(mesh.clearance(q, ball.parts_at(t0 + t)).distance
+                      for t, q in zip(times, states, strict=True))
+        assert closest <= 0.0, (late, closest)
+
+
 def test_animation_draws_true_shapes_and_the_estimate():
     """A box is drawn as a box (its 12 hull triangles), a sphere as a surface, an estimate as
     a wireframe, and the estimate shown is the last one received before the frame."""
