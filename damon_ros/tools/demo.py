@@ -62,6 +62,7 @@ class Recording:
     clearance: list[float] = field(default_factory=list)
     moving_clearance: list[float] = field(default_factory=list)  # to moving obstacles only
     trajectories: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    first_plan: tuple[float, np.ndarray, np.ndarray] | None = None  # (t, times, states)
     estimates: list[tuple[float, list]] = field(default_factory=list)  # (t, planner's shapes)
     status: dict = field(default_factory=dict)
 
@@ -235,7 +236,12 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
 
     def on_trajectory(msg: JointTrajectory) -> None:
         points = np.array([p.positions for p in msg.points]) if msg.points else np.zeros((0, 7))
-        rec.trajectories.append((time.time() - clock["start"], points))
+        t = time.time() - clock["start"]
+        rec.trajectories.append((t, points))
+        if rec.first_plan is None and len(points) and math.isfinite(t):
+            times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
+                              for p in msg.points])
+            rec.first_plan = (t, times, points)
 
     node.create_subscription(JointState, topics.JOINT_STATES, on_joints, 10)
     node.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, on_status, 10)
@@ -274,6 +280,7 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
         t_goal = time.time()
         result["goal_delay_s"] = t_goal - start_time
         result.update(_follow(executor, scenario, mesh, latest, rec, start_time, t_goal, procs))
+        result["first_plan_clearance"] = as_planned_clearance(scenario, mesh, rec.first_plan)
         result["cpu_cores"] = cpu_shares(cpu_before, _cpu(procs), time.time() - start_time,
                                          "demo")
         result["load_avg"] = os.getloadavg()[0]
@@ -414,6 +421,23 @@ def _follow(executor, scenario, mesh, latest, rec: Recording, start_time: float,
     return {"reason": f"goal not reached within {scenario.time_limit:.0f} s"}
 
 
+def as_planned_clearance(scenario, mesh, plan: tuple | None) -> float:
+    """Minimum clearance on the exact meshes between the moving obstacles and an arm that
+    followed ``plan`` — (scenario time it started, times from its start, states), the first
+    trajectory — exactly, then stayed at its end until every mover has stopped: how near the
+    arm would have come to them without a re-route (<= 0: contact). nan without a plan or a
+    mover."""
+    moving = [o for o in scenario.obstacles if o.is_dynamic]
+    if plan is None or not moving:
+        return math.nan
+    start, times, states = plan
+    stop = max(float(o.waypoints[-1, 0]) for o in moving)
+    rest = np.arange(start + times[-1], max(stop, start + times[-1]) + 0.1, 0.1)
+    samples = [*zip(start + times, states, strict=True), *((t, states[-1]) for t in rest)]
+    return min(mesh.clearance(q, [p for o in moving for p in o.parts_at(t)]).distance
+               for t, q in samples)
+
+
 def _print_log_tail(path: Path, lines: int = 8) -> None:
     """A failed run names its cause where the user looks: the planner's last words."""
     if path.exists():
@@ -432,6 +456,8 @@ def print_summary(result: dict) -> None:
         f"T (goal → held)     {result.get('total_time_s', float('nan')):.2f} s",
         f"min clearance       {min(rec.clearance, default=float('nan')):.3f} m (exact meshes; "
         f"to the moving obstacles {min(rec.moving_clearance, default=float('nan')):.3f} m)",
+        f"first route         {result.get('first_plan_clearance', float('nan')):.3f} m from "
+        "the moving obstacles, had the arm followed it as planned (<= 0: contact)",
         f"trajectories        {sum(1 for _, p in rec.trajectories if len(p))} "
         f"({status.get('replans', '?')} re-routes, {status.get('holds', '?')} holds)",
         f"re-route latency    p50 {status.get('replan_latency_p50_ms', 'nan')} ms "
