@@ -7,6 +7,7 @@ here is the last resort.
 
 from __future__ import annotations
 
+import math
 import re
 import subprocess
 import sys
@@ -144,6 +145,35 @@ def test_default_demo_puts_the_ball_on_the_first_route():
         closest = min(mesh.clearance(q, ball.parts_at(t0 + t)).distance
                       for t, q in zip(times, states, strict=True))
         assert closest <= 0.0, (late, closest)
+
+
+def test_as_planned_clearance_follows_the_plan_then_rests_at_its_end():
+    """The summary's "first route" line: the arm on its plan's schedule, then resting at its
+    end while the movers still move, against where each mover is at that scenario time."""
+    from damon_ros.core.scenario import load_scenario
+    from damon_ros.tools.demo import as_planned_clearance
+
+    scenario = load_scenario(public_scenarios_dir() / "D-001.yaml")
+    mesh = Robot("mesh")
+    ball = next(o for o in scenario.obstacles if o.is_dynamic)
+    # a state whose hand is where the ball passes at t = 5 s (found by its own IK)
+    centre = ball.position_at(5.0)
+    q = mesh.ik(centre, [1.0, 0.0, 0.0, 0.0], q_near=scenario.start).q
+    still = (0.0, np.array([0.0, 1.0]), np.array([scenario.start, scenario.start]))
+    assert math.isnan(as_planned_clearance(scenario, mesh, None))
+    far = as_planned_clearance(scenario, mesh, still)
+    assert far > 0.05
+    # there from t = 4.5 s to 5.5 s: met; there only while the ball is parked, then back
+    # at the start before it moves (1.94 s): not met
+    met = as_planned_clearance(scenario, mesh, (4.5, np.array([0.0, 1.0]), np.array([q, q])))
+    assert met <= 0.0
+    gone = as_planned_clearance(scenario, mesh, (0.0, np.array([0.0, 1.0]),
+                                                 np.array([q, scenario.start])))
+    assert gone > 0.05
+    # resting at the end counts: a plan that ends in the ball's way before it comes
+    rests = as_planned_clearance(scenario, mesh, (0.0, np.array([0.0, 1.0]),
+                                                  np.array([scenario.start, q])))
+    assert rests <= 0.0
 
 
 def test_animation_draws_true_shapes_and_the_estimate():
