@@ -158,7 +158,7 @@ def test_as_planned_clearance_follows_the_plan_then_rests_at_its_end():
     ball = next(o for o in scenario.obstacles if o.is_dynamic)
     # a state whose hand is where the ball passes at t = 5 s (found by its own IK)
     centre = ball.position_at(5.0)
-    q = mesh.ik(centre, [1.0, 0.0, 0.0, 0.0], q_near=scenario.start).q
+    q = mesh.ik(centre, [0.7071068, 0.0, 0.7071068, 0.0], q_near=scenario.start).q  # forward
     still = (0.0, np.array([0.0, 1.0]), np.array([scenario.start, scenario.start]))
     assert math.isnan(as_planned_clearance(scenario, mesh, None))
     far = as_planned_clearance(scenario, mesh, still)
