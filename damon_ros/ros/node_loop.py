@@ -16,7 +16,7 @@ import rclpy.logging
 from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 
-from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority, set_thread_priority
+from damon_ros.ros.rate_loop import FixedRateLoop, set_realtime_priority
 
 
 def use_realtime_priority(node: Node, priority: int) -> None:
@@ -41,13 +41,8 @@ def hand_over_gil_within(seconds: float) -> None:
 
 def start_loop(node: Node, name: str, rate_hz: float, step: Callable[[float], None],
                what: str, priority: int) -> FixedRateLoop:
-    """Start ``step`` at ``rate_hz`` on a thread ``<name>_loop``: the process at SCHED_FIFO
-    ``priority``, the loop thread one above (when ``priority`` > 0).
+    """Start ``step`` at ``rate_hz`` on a thread ``<name>_loop``, at SCHED_FIFO ``priority``.
 
-    Why one above: SCHED_FIFO does not share a core between threads of equal priority. At
-    the process's priority, like its executor and DDS threads (and the other 1 kHz node's),
-    the woken loop thread waited on its core until whichever of them ran there blocked;
-    one above, it preempts them at once (and gets the GIL within `hand_over_gil_within`).
     ``what`` names the loop in the one error line logged when ``step`` raises (the loop then
     ends: see `FixedRateLoop`).
     """
@@ -60,10 +55,6 @@ def start_loop(node: Node, name: str, rate_hz: float, step: Callable[[float], No
     use_realtime_priority(node, priority)
     hand_over_gil_within(0.25 / rate_hz)
     loop.start()
-    if priority > 0:
-        refused = set_thread_priority(loop.native_id, min(priority + 1, 99))
-        if refused:
-            node.get_logger().warning(f"{name}_loop: {refused}")
     return loop
 
 

@@ -24,25 +24,13 @@ def set_realtime_priority(priority: int) -> str | None:
     normal scheduling. Refused without CAP_SYS_NICE (or an rtprio limit): the reason is
     returned so the node can log it and run on with normal scheduling.
     """
-    try:
-        tids = [int(tid) for tid in os.listdir("/proc/self/task")]
-    except FileNotFoundError as exc:  # not Linux
-        return f"SCHED_FIFO priority {priority} refused ({exc}); running with normal scheduling"
-    for tid in tids:
-        refused = set_thread_priority(tid, priority)
-        if refused:
-            return refused
-    return None
-
-
-def set_thread_priority(tid: int, priority: int) -> str | None:
-    """`set_realtime_priority` for the one thread ``tid`` (a native thread id)."""
     if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= 99:
         raise ValueError(f"realtime priority must be an integer in 0..99, got {priority!r}")
     policy = os.SCHED_FIFO if priority > 0 else os.SCHED_OTHER
     try:
-        os.sched_setscheduler(tid, policy, os.sched_param(priority))
-    except (AttributeError, OSError) as exc:  # not Linux / not permitted / thread gone
+        for tid in os.listdir("/proc/self/task"):
+            os.sched_setscheduler(int(tid), policy, os.sched_param(priority))
+    except (AttributeError, FileNotFoundError, OSError) as exc:  # not Linux / not permitted
         return f"SCHED_FIFO priority {priority} refused ({exc}); running with normal scheduling"
     return None
 
@@ -85,11 +73,6 @@ class FixedRateLoop:
         self._stop.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout)
-
-    @property
-    def native_id(self) -> int | None:
-        """The loop thread's id for the scheduler (None before `start`)."""
-        return self._thread.native_id
 
     @property
     def running(self) -> bool:
