@@ -39,7 +39,7 @@ DEFAULT_GOAL_AT_S = 1.6
 route the planner takes first (the graph's, D-001's ball still parked) is one the ball
 crosses while the arm is on it: followed as planned, the arm meets the ball on the
 ground truth (test_demo.test_default_demo_puts_the_ball_on_the_first_route) and passes it
-within λ on the tracker's estimates (5-15 mm in 5 runs: the summary's "first route"), so
+within λ on the tracker's estimates (0-17 mm in 10 runs: the summary's "first route"), so
 the demo has to dodge in every run. Before (0.25, the goal at t = 0) the ball passed
 0.13-0.17 m from the arm, and whether its prediction touched the rest of the route was
 down to the tracker's noise: 3 of 5 runs re-routed. At the planner's 0.9 the arm holds the
