@@ -392,7 +392,8 @@ class PlannerNode(Node):
             self._publish_trajectory(event.result)
             latency = 1e3 * (time.perf_counter() - received)
             what = "plan" if cause == "goal" else "re-route"
-            log.info(f"{what}: {len(event.result.path)} waypoints, "
+            log.info(f"{what}: {len(event.result.path)} waypoints ({event.result.source} "
+                     "route), "
                      f"{event.result.trajectory.duration:.2f} s of motion, decided in "
                      f"{event.latency_ms:.1f} ms ({latency:.1f} ms after the input)"
                      + (f" — {event.reason}" if event.reason else ""))

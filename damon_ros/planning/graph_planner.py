@@ -146,7 +146,7 @@ class PlanResult:
     edges_checked: int = 0
     edges_rejected: int = 0
     timing_ms: dict[str, float] = field(default_factory=dict)
-    source: str = "graph"  # graph | experience | rrtconnect: what found the route
+    source: str = "graph"  # graph | experience | rrtconnect | escape: what found the route
 
     @property
     def path_length(self) -> float:
@@ -973,7 +973,7 @@ class GraphPlanner:
                 continue
             return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
                               path=path, trajectory=trajectory, goal_q=self.goal_q,
-                              edges_checked=query.checked,
+                              edges_checked=query.checked, source="escape",
                               timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
         return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
@@ -1014,12 +1014,22 @@ class GraphPlanner:
         query = _Query(self, q_now, q_now, scene)
         for i, (a, b) in enumerate(zip(points, points[1:], strict=False)):
             if not query.segment_certified(a, b, first=i <= 1, last=i == len(points) - 2):
-                return True, "an obstacle blocks the remaining path"
+                return True, f"{self._nearest_name(a, b, scene.ahead)} blocks the remaining path"
         if self.risk is not None:
             p = float(self.risk(q_now, scene.now))
             if p > 0.5:
                 return True, f"p(collision) at the current state is {p:.2f}"
         return False, ""
+
+
+    def _nearest_name(self, a: np.ndarray, b: np.ndarray, obstacles: Sequence[Shape]) -> str:
+        """The name of the obstacle nearest the segment ``a``-``b`` (states at the planner's
+        resolution), so that a log says what blocked the path (the box's jitter, a mover)."""
+        n = int(np.ceil(float(np.max(np.abs(b - a))) / self.config.resolution)) + 1
+        states = a + np.linspace(0.0, 1.0, max(n, 2))[:, None] * (b - a)
+        gaps = [float(self.robot.distances(states, [shape]).min()) for shape in obstacles]
+        k = int(np.argmin(gaps))
+        return obstacles[k].name or f"obstacle {k}"
 
 
 def _via(route: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarray:
