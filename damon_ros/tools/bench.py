@@ -34,7 +34,7 @@ class _PlanOnce:
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
-    def update(self, t, q_now, obstacles, perception_age_s: float = 0.0):
+    def update(self, t, q_now, obstacles, perception_age_s: float = 0.0, qd_now=None):
         if self.inner.state != "executing":
             return None
         if np.max(np.abs(np.asarray(q_now) - self.inner.path[-1])) <= \

@@ -151,3 +151,14 @@ def test_bench_tracker_compares_camera_sets_and_refuses_a_bad_camera_list(tmp_pa
     assert "nowhere.yaml" in capsys.readouterr().err
     assert bench(["--scenarios", scenario, "--perception", "camera", "--cameras", "x,",
                   "--out", str(tmp_path / "r.jsonl")]) == 2
+
+
+def test_the_plan_once_ablation_runs_the_closed_loop(tmp_path):
+    """``damon-noreplan`` goes through the same closed loop as damon (which passes the
+    arm's velocity to every update): it plans once and never re-routes."""
+    out = tmp_path / "noreplan.jsonl"
+    assert bench(["--scenarios", str(public_scenarios_dir() / "D-001.yaml"), "--planners",
+                  "damon-noreplan", "--out", str(out), "--quiet"]) == 0
+    (record,) = map(json.loads, out.read_text().splitlines())
+    assert record["planner"] == "damon-noreplan" and "run failed" not in str(record["error"])
+    assert record["replans"] == 0
