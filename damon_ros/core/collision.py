@@ -284,6 +284,14 @@ class SphereModel:
         return sphere_kernels.batch_distances(np.ascontiguousarray(Q, dtype=float),
                                               *self.kernel_args, *self._packed(obstacles))
 
+    def band_states(self, Q: np.ndarray, obstacles: Sequence[Shape], margin: float,
+                    floor: float, budget: int) -> np.ndarray | None:
+        """Indices of the configurations (N, 7) within ``margin`` of the obstacles, or None
+        when one is at or below ``floor`` or more than ``budget`` are within it
+        (`sphere_kernels.band_states`)."""
+        return sphere_kernels.band_states(np.ascontiguousarray(Q, dtype=float), margin, floor,
+                                          budget, *self.kernel_args, *self._packed(obstacles))
+
     def segment_clear(self, q0: np.ndarray, q1: np.ndarray, steps: int,
                       obstacles: Sequence[Shape], margin: float) -> bool:
         """All ``steps + 1`` evenly spaced states q0→q1 keep more than ``margin`` (``steps``

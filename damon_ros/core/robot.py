@@ -447,11 +447,10 @@ class Robot:
         mesh query only runs in that thin band."""
         if self.exact_budget <= 0:
             return False
-        d = self.spheres.distances(Q, obstacles)
-        near = np.flatnonzero(d <= margin)
-        if np.any(d[near] <= margin - self.contact_band) or len(near) > self.exact_budget:
-            return False
-        return all(self._mesh_keeps(Q[i], obstacles, margin) for i in near)
+        near = self.spheres.band_states(Q, obstacles, margin, margin - self.contact_band,
+                                        self.exact_budget)
+        return near is not None and all(self._mesh_keeps(Q[i], obstacles, margin)
+                                        for i in near)
 
     def _mesh_keeps(self, q: np.ndarray, obstacles: Sequence[Shape], margin: float) -> bool:
         """Every mesh keeps more than ``margin`` from every obstacle: the decision alone, so

@@ -18,13 +18,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, START_LIMIT_TOLERANCE, JointLimits
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
 from damon_ros.planning.graph_search import GraphSearch
-from damon_ros.planning.space_time import Contact, Prediction, first_contact, predicted_region
+from damon_ros.planning.space_time import (
+    Contact,
+    Prediction,
+    first_contact,
+    predicted_region,
+    refused,
+    stops_screen,
+)
 
 
 @dataclass(frozen=True)
@@ -457,6 +465,13 @@ class GraphPlanner:
         return contact if contact is not None else self._stop_contact(trajectory, scene,
                                                                         margin)
 
+    def _refused(self, trajectory, scene: Scene, margin: float) -> bool:
+        """`_contact` is not None, without describing the trajectory's own contact (the
+        yes/no of a delayed start or an escape's rest: `space_time.refused`)."""
+        return refused(self.robot, trajectory.times, trajectory.positions, scene.moving,
+                       margin, self.config.resolution, self.config.prediction,
+                       scene.age_s) or self._stop_contact(trajectory, scene, margin) is not None
+
     def _stop_contact(self, trajectory, scene: Scene, margin: float):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
@@ -467,7 +482,10 @@ class GraphPlanner:
         static obstacles on the fast model. A scene without movers is not checked: its
         stops stay on certified segments but for such an overshoot (the cost of a static
         scene stays what it was). The end state is checked at rest for REST_HORIZON_S: an
-        arm that arrives just before a mover passes through its goal has no stop there."""
+        arm that arrives just before a mover passes through its goal has no stop there.
+        On the fast model the stops are screened in one compiled call
+        (`space_time.stops_screen`); a stop it flags is asked again here, as the meshes'
+        model asks every one."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -475,7 +493,17 @@ class GraphPlanner:
         statics = scene.statics().ahead
         from damon_ros.planning.trajectory import braking_states
 
-        for i in _stop_states(trajectory):
+        stops = _stop_states(trajectory)
+        j = 0
+        while j < len(stops):
+            if self.robot.collision == "fast":
+                j = stops_screen(self.robot, trajectory, stops, j, scene.moving,
+                                 margin + STOP_MARGIN_M, self.config.resolution, p, tau0,
+                                 self.limits, BRAKE_LATENCY_S, statics)[0]
+                if j < 0:
+                    break
+            i = int(stops[j])
+            j += 1
             q, qd = trajectory.positions[i], trajectory.velocities[i]
             times, states = braking_states(q, qd, self.limits, BRAKE_LATENCY_S)
             contact = first_contact(self.robot, times, states, scene.moving,
@@ -552,7 +580,7 @@ class GraphPlanner:
             wait = Trajectory(np.array([0.0, delay]), np.vstack([q0, q0]),
                               np.vstack([rest, rest]), np.vstack([rest, rest]))
             delayed = concatenate(wait, trajectory)
-            if self._contact(delayed, scene, margin) is None:
+            if not self._refused(delayed, scene, margin):
                 return delayed
         return None
 
@@ -983,8 +1011,8 @@ class GraphPlanner:
         time with its stops."""
         from damon_ros.planning.trajectory import held_until
 
-        return self._contact(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
-                             scene, margin) is None
+        return not self._refused(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
+                                 scene, margin)
 
     def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
         """Each mover where it is predicted a quarter, half, three quarters and all of
@@ -1033,19 +1061,27 @@ def _via(route: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarr
     return path[np.concatenate([[True], step > 1e-9])]
 
 
-def _stop_states(trajectory) -> list[int]:
+def _stop_states(trajectory) -> np.ndarray:
     """Indices of the moving states whose stops `_stop_contact` checks: the first moving
     one, then each STOP_EVERY_RAD (largest joint) or STOP_EVERY_S after the last."""
     from damon_ros.planning.trajectory import AT_REST_RAD_S
 
-    moving = np.max(np.abs(trajectory.velocities), axis=1) >= AT_REST_RAD_S
-    out: list[int] = []
-    for i in np.flatnonzero(moving):
-        if not out or trajectory.times[i] - trajectory.times[out[-1]] >= STOP_EVERY_S or \
-                np.max(np.abs(trajectory.positions[i] - trajectory.positions[out[-1]])) >= \
-                STOP_EVERY_RAD:
-            out.append(int(i))
-    return out
+    return _stop_indices(trajectory.times, trajectory.positions, trajectory.velocities,
+                         AT_REST_RAD_S, STOP_EVERY_S, STOP_EVERY_RAD)
+
+
+@njit(cache=True)
+def _stop_indices(times, positions, velocities, at_rest, every_s, every_rad):
+    out = np.empty(times.shape[0], np.int64)
+    n = 0
+    for i in range(times.shape[0]):
+        if np.max(np.abs(velocities[i])) < at_rest:
+            continue
+        if n == 0 or times[i] - times[out[n - 1]] >= every_s or \
+                np.max(np.abs(positions[i] - positions[out[n - 1]])) >= every_rad:
+            out[n] = i
+            n += 1
+    return out[:n]
 
 
 def _timed(trajectory) -> tuple[np.ndarray, np.ndarray]:
