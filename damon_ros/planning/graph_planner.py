@@ -26,11 +26,12 @@ from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
 from damon_ros.planning.graph_search import GraphSearch
 from damon_ros.planning.space_time import (
+    HINT_WINDOW_S,
     Contact,
     Prediction,
     first_contact,
     predicted_region,
-    refused,
+    refused_at,
     stops_screen,
 )
 
@@ -263,6 +264,7 @@ class GraphPlanner:
             np.ascontiguousarray(graph.weights, np.float64))
         self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
         self._fallback_failures = 0  # toward the current goal: escalates the budget
+        self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
 
     @property
     def exact(self):
@@ -434,7 +436,8 @@ class GraphPlanner:
             contact = self._contact(result.trajectory, scene, margin)
             if contact is None:
                 break
-            delayed = self._delayed(result.trajectory, scene, margin) if at_rest else None
+            delayed = self._delayed(result.trajectory, scene, margin,
+                                    contact.time_s) if at_rest else None
             if delayed is not None:  # re-timed: wait where it stands until the mover passed
                 result.trajectory = delayed
                 break
@@ -465,14 +468,21 @@ class GraphPlanner:
         return contact if contact is not None else self._stop_contact(trajectory, scene,
                                                                         margin)
 
-    def _refused(self, trajectory, scene: Scene, margin: float) -> bool:
-        """`_contact` is not None, without describing the trajectory's own contact (the
-        yes/no of a delayed start or an escape's rest: `space_time.refused`)."""
-        return refused(self.robot, trajectory.times, trajectory.positions, scene.moving,
-                       margin, self.config.resolution, self.config.prediction,
-                       scene.age_s) or self._stop_contact(trajectory, scene, margin) is not None
+    def _refusal(self, trajectory, scene: Scene, margin: float,
+                 hint_s: float | None = None) -> float | None:
+        """The time of a refused instant or stop when `_contact` is not None, else None:
+        without describing the contact (`space_time.refused_at`, asked first near
+        ``hint_s``), for the yes/no of a delayed start or an escape's rest."""
+        t = refused_at(self.robot, trajectory.times, trajectory.positions, scene.moving,
+                       margin, self.config.resolution, self.config.prediction, scene.age_s,
+                       hint_s)
+        if t is not None:
+            return t
+        contact = self._stop_contact(trajectory, scene, margin, hint_s)
+        return None if contact is None else contact.time_s
 
-    def _stop_contact(self, trajectory, scene: Scene, margin: float):
+    def _stop_contact(self, trajectory, scene: Scene, margin: float,
+                      hint_s: float | None = None):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -485,7 +495,8 @@ class GraphPlanner:
         arm that arrives just before a mover passes through its goal has no stop there.
         On the fast model the stops are screened in one compiled call
         (`space_time.stops_screen`); a stop it flags is asked again here, as the meshes'
-        model asks every one."""
+        model asks every one. ``hint_s``: the stops from states within HINT_WINDOW_S of it
+        are asked first (a yes/no question: the contact is then not the first in time)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -494,6 +505,9 @@ class GraphPlanner:
         from damon_ros.planning.trajectory import braking_states
 
         stops = _stop_states(trajectory)
+        if hint_s is not None:
+            near = np.abs(trajectory.times[stops] - hint_s) <= HINT_WINDOW_S
+            stops = np.concatenate([stops[near], stops[~near]])
         j = 0
         while j < len(stops):
             if self.robot.collision == "fast":
@@ -568,10 +582,12 @@ class GraphPlanner:
             return True, contact.describe()
         return False, ""
 
-    def _delayed(self, trajectory, scene: Scene, margin: float):
+    def _delayed(self, trajectory, scene: Scene, margin: float, refused_s: float):
         """``trajectory`` started after a wait at its first state (the shortest of
         START_DELAYS_S) when that makes it certified in space and time, else None: a mover
-        about to cross the way is let past, the waiting arm checked against it as well."""
+        about to cross the way is let past, the waiting arm checked against it as well.
+        ``refused_s``: where the trajectory was refused, in its own time; each delayed start
+        is asked there first (`_refusal`), then where the last delay was refused."""
         from damon_ros.planning.trajectory import Trajectory, concatenate
 
         q0 = trajectory.positions[:1]
@@ -580,8 +596,10 @@ class GraphPlanner:
             wait = Trajectory(np.array([0.0, delay]), np.vstack([q0, q0]),
                               np.vstack([rest, rest]), np.vstack([rest, rest]))
             delayed = concatenate(wait, trajectory)
-            if not self._refused(delayed, scene, margin):
+            refused_at_s = self._refusal(delayed, scene, margin, refused_s + delay)
+            if refused_at_s is None:
                 return delayed
+            refused_s = refused_at_s - delay
         return None
 
     def stop_trajectory(self, q: np.ndarray, qd: np.ndarray | None):
@@ -870,12 +888,11 @@ class GraphPlanner:
         """A* over active safe vertices plus start and goal; edges on the found path are
         checked in order and a blocked one removed before searching again (lazy PRM). The
         A* itself is compiled (`graph_search`): one iteration is well under a millisecond."""
-        g = self.graph
         active_ids = np.flatnonzero(active)
         start_links = self._attach(query.q_start, active_ids)
         goal_links = dict(self._attach(query.q_goal, active_ids))
         direct = float(np.linalg.norm(query.q_goal - query.q_start))
-        heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
+        heuristic = self._heuristic(query.q_goal)
         while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
                                         and time.perf_counter() < query.deadline):
             query.iterations += 1
@@ -889,6 +906,16 @@ class GraphPlanner:
             if all(query.edge_free(u, v) for u, v in zip(path, path[1:], strict=False)):
                 return path
         return None
+
+    def _heuristic(self, q_goal: np.ndarray) -> np.ndarray:
+        """A*'s heuristic, every vertex's joint-space distance to ``q_goal``: kept for the
+        last goal, which every re-plan toward it and every widened search asks for again
+        (~0.5 ms a time over the whole graph)."""
+        cached = self._heuristic_cache
+        if cached is None or not np.array_equal(cached[0], q_goal):
+            cached = self._heuristic_cache = (q_goal.copy(), np.linalg.norm(
+                self.graph.q - q_goal, axis=1))
+        return cached[1]
 
     def _shortcut(self, path: np.ndarray, query: _Query) -> np.ndarray:
         """Greedy shortcutting: from each kept waypoint jump to the farthest later waypoint
@@ -1011,8 +1038,8 @@ class GraphPlanner:
         time with its stops."""
         from damon_ros.planning.trajectory import held_until
 
-        return not self._refused(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
-                                 scene, margin)
+        return self._refusal(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
+                             scene, margin) is None
 
     def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
         """Each mover where it is predicted a quarter, half, three quarters and all of
