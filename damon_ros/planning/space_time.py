@@ -147,13 +147,16 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
                    kind, pos, rot, params, hull):
     """Index of the first instant at which some mover part comes within its required
     distance (margin + rho(tau) + half step), or -1. Each part is translated by v * tau:
-    its position, and a hull's face rows (corners and plane offset)."""
+    its position, and a hull's face rows (corners and plane offset). One distance query an
+    instant for all movers, each less its own required distance (the query's ``offset``:
+    ``d - need <= 0`` exactly when ``d <= need``): the arm's pose and its bounds once."""
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
     fr = np.empty((jr.shape[0] + 1, 3, 3))
     fp = np.empty((jr.shape[0] + 1, 3))
     where = np.empty(2, np.int64)
     moved_pos = pos.copy()
     moved_hull = hull.copy()
+    need = np.empty(kind.shape[0])
     for n in range(times.shape[0]):
         tau = tau0 + times[n]
         for k in range(kind.shape[0]):
@@ -168,13 +171,11 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
                         moved_hull[r, 3 * c + 2] = hull[r, 3 * c + 2] + dz
                     moved_hull[r, 12] = hull[r, 12] - (hull[r, 9] * dx + hull[r, 10] * dy
                                                        + hull[r, 11] * dz)
-            need = required0 + grow_lin[k] * tau + grow_quad * tau * tau
-            d = sphere_kernels._distance_below(
-                Q[n], need + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb,
-                kind[k:k + 1], moved_pos[k:k + 1], rot[k:k + 1], params[k:k + 1], moved_hull,
-                fr, fp, where, need)
-            if d <= need:
-                return n
+            need[k] = required0 + grow_lin[k] * tau + grow_quad * tau * tau
+        if sphere_kernels._distance_below(Q[n], 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
+                                          jb, kind, moved_pos, rot, params, moved_hull, fr, fp,
+                                          where, 0.0, 0, need) <= 0.0:
+            return n
     return -1
 
 
