@@ -283,9 +283,14 @@ class GraphPlanner:
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
+        if self.robot.collision == "fast":  # the exact band's fast side
+            self.robot.spheres.band_states(q[None], [probe], self.config.margin, 0.0, 1)
         from damon_ros.planning import space_time
+        from damon_ros.planning.trajectory import Trajectory
 
         space_time.warm_up(self.robot)
+        zero = np.zeros((2, 7))
+        _stop_states(Trajectory(np.array([0.0, 0.1]), np.vstack([q, q]), zero, zero))
         if self.config.fallback_budget_s > 0.0:  # a first fallback should not pay for these
             if self.robot.collision == "fast":
                 from damon_ros.planning import path_shortcutting, rrt_connect

@@ -201,6 +201,17 @@ class Trajectory:
         self.velocities = _as_matrix("velocities", self.velocities, n, dof)
         self.accelerations = _as_matrix("accelerations", self.accelerations, n, dof)
 
+    @classmethod
+    def _built(cls, times, positions, velocities, accelerations) -> Trajectory:
+        """A trajectory of arrays joined here from valid trajectories (`concatenate`,
+        `held_until`: increasing times from 0, finite rows by construction), without
+        `__post_init__`'s checks again (~0.1 ms each, several a re-plan)."""
+        out = object.__new__(cls)
+        out.times, out.positions = times, positions
+        out.velocities, out.accelerations = velocities, accelerations
+        out._spline = None
+        return out
+
     @property
     def duration(self) -> float:
         return float(self.times[-1])
@@ -395,8 +406,9 @@ def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> T
     starts = np.concatenate(([0.0], ends[:-1]))
     # Samples on a waypoint time belong to the segment ending there (they are equal anyway).
     index = np.searchsorted(ends, times, side="left")
+    bounds = np.searchsorted(index, np.arange(len(segments) + 1), side="left")  # sorted: runs
     for i, seg in enumerate(segments):
-        rows = index == i
+        rows = slice(bounds[i], bounds[i + 1])
         q[rows], qd[rows], qdd[rows] = seg.at(times[rows] - starts[i])
     q[-1], qd[-1], qdd[-1] = goal, 0.0, 0.0
     return Trajectory(times, q, qd, qdd)
@@ -540,18 +552,22 @@ def held_until(traj: Trajectory, end_s: float) -> Trajectory:
     """``traj`` with its last point repeated at ``end_s`` when it ends before (at rest)."""
     if end_s <= traj.duration + 1e-9:
         return traj
+    if not math.isfinite(end_s):
+        raise ValueError(f"end_s must be finite, got {end_s}")
     zero = np.zeros((1, traj.positions.shape[1]))
-    return Trajectory(np.append(traj.times, end_s), np.vstack((traj.positions,
-                                                              traj.positions[-1:])),
-                      np.vstack((traj.velocities, zero)), np.vstack((traj.accelerations, zero)))
+    return Trajectory._built(np.append(traj.times, float(end_s)),
+                             np.vstack((traj.positions, traj.positions[-1:])),
+                             np.vstack((traj.velocities, zero)),
+                             np.vstack((traj.accelerations, zero)))
 
 
 def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
     """``second`` after ``first`` (which must end where ``second`` starts, both at rest)."""
     if np.max(np.abs(first.positions[-1] - second.positions[0])) > 1e-9:
         raise ValueError("trajectories to concatenate must meet")
-    return Trajectory(np.concatenate((first.times, first.duration + second.times[1:])),
-                      *(np.vstack((a, b[1:])) for a, b in (
-                          (first.positions, second.positions),
-                          (first.velocities, second.velocities),
-                          (first.accelerations, second.accelerations))))
+    times = np.concatenate((first.times, first.duration + second.times[1:]))
+    if np.any(np.diff(times) <= 0.0):  # a shift by the duration can merge close samples
+        raise ValueError("times must be strictly increasing")
+    return Trajectory._built(times, *(np.vstack((a, b[1:])) for a, b in (
+        (first.positions, second.positions), (first.velocities, second.velocities),
+        (first.accelerations, second.accelerations))))
