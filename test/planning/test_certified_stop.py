@@ -13,11 +13,13 @@ from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import (
     BRAKE_LATENCY_S,
     REST_HORIZON_S,
+    STOP_MARGIN_M,
     GraphPlanner,
     Scene,
+    _stop_states,
 )
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
-from damon_ros.planning.space_time import Prediction, first_contact
+from damon_ros.planning.space_time import Prediction, first_contact, stops_screen
 from damon_ros.planning.trajectory import braking_states, stop_trajectory, time_parameterize
 
 
@@ -35,6 +37,45 @@ def test_braking_states_are_the_stop_the_runtime_sends():
             assert np.max(np.abs(stop.sample(t)[0] - q)) < 1e-5
     times, states = braking_states(q0, np.zeros(7), limits)  # at rest: the hold
     assert np.allclose(states, q0)
+
+
+def test_the_compiled_stop_screen_flags_the_stops_the_python_check_refuses(fast):
+    """`stops_screen` (one compiled call for all stops) against the check it screens for,
+    stop by stop in Python: the braking states, `first_contact` at the stop's age with the
+    stop margin, then the braking line against the statics on the fast model."""
+    limits, p = joint_limits("panda"), Prediction()
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), limits, 0.9, 0.8, 0.8, dt=0.01)
+    stops = _stop_states(tr)
+    hand, _ = fast.tcp_pose(tr.sample(0.7 * tr.duration)[0])
+    statics = (Shape("box", (0.08, 0.08, 0.08), hand),)  # some braking lines run into it
+    tau0, margin = max(AGE, p.min_age_s), 0.01 + STOP_MARGIN_M
+    seen = set()
+    for ball, v in _rising_scenes(fast, tr, np.random.default_rng(11), 12):
+        moving = ((ball, v),)
+        expected = []
+        for j, i in enumerate(stops):
+            times, states = braking_states(tr.positions[i], tr.velocities[i], limits,
+                                           BRAKE_LATENCY_S)
+            if first_contact(fast, times, states, moving, margin, 0.02, p,
+                             tau0 + tr.times[i]) is not None:
+                expected.append((j, 1))
+            elif not fast.segment_free(tr.positions[i], states[-1], statics, 0.0, 0.02,
+                                       exact_band=False):
+                expected.append((j, 2))
+        flagged, j = [], 0
+        while True:
+            j, what = stops_screen(fast, tr, stops, j, moving, margin, 0.02, p, tau0, limits,
+                                   BRAKE_LATENCY_S, statics)
+            if j < 0:
+                break
+            flagged.append((j, what))
+            j += 1
+        assert flagged == expected
+        seen.update("mover" if w == 1 else "static" for _, w in expected)
+        if len(expected) < len(stops):
+            seen.add("clear")
+    assert seen == {"mover", "static", "clear"}  # each kind of answer came up
 
 
 def _rising_scenes(fast: Robot, trajectory, rng: np.random.Generator, n: int):
