@@ -286,11 +286,12 @@ class GraphPlanner:
         if self.robot.collision == "fast":  # the exact band's fast side
             self.robot.spheres.band_states(q[None], [probe], self.config.margin, 0.0, 1)
         from damon_ros.planning import space_time
-        from damon_ros.planning.trajectory import Trajectory
+        from damon_ros.planning.trajectory import Trajectory, braking_states
 
         space_time.warm_up(self.robot)
         zero = np.zeros((2, 7))
         _stop_states(Trajectory(np.array([0.0, 0.1]), np.vstack([q, q]), zero, zero))
+        braking_states(q, np.full(7, 0.5), self.limits, BRAKE_LATENCY_S)  # a stop flagged
         if self.config.fallback_budget_s > 0.0:  # a first fallback should not pay for these
             if self.robot.collision == "fast":
                 from damon_ros.planning import path_shortcutting, rrt_connect
