@@ -491,18 +491,26 @@ class GraphPlanner:
     def _refusal(self, trajectory, scene: Scene, margin: float,
                  hint_s: float | None = None) -> float | None:
         """The time of a refused instant or stop when `_contact` is not None, else None:
-        without describing the contact (`space_time.refused_at`, asked first near
-        ``hint_s``), for the yes/no of a delayed start or an escape's rest."""
+        without describing the contact, for the yes/no of a delayed start or an escape's
+        rest. With ``hint_s`` (where a similar trajectory was refused) the stops from states
+        near it go first, then the instants near it (`space_time.refused_at`), then the
+        rest of each: the same checks in another order, so the same answer, sooner (a
+        delayed start was mostly refused by a stop near where the last one was)."""
+        if hint_s is not None:
+            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near")
+            if contact is not None:
+                return contact.time_s
         t = refused_at(self.robot, trajectory.times, trajectory.positions, scene.moving,
                        margin, self.config.resolution, self.config.prediction, scene.age_s,
                        hint_s)
         if t is not None:
             return t
-        contact = self._stop_contact(trajectory, scene, margin, hint_s)
+        contact = self._stop_contact(trajectory, scene, margin, hint_s,
+                                     "all" if hint_s is None else "far")
         return None if contact is None else contact.time_s
 
     def _stop_contact(self, trajectory, scene: Scene, margin: float,
-                      hint_s: float | None = None):
+                      hint_s: float | None = None, part: str = "all"):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -515,8 +523,10 @@ class GraphPlanner:
         arm that arrives just before a mover passes through its goal has no stop there.
         On the fast model the stops are screened in one compiled call
         (`space_time.stops_screen`); a stop it flags is asked again here, as the meshes'
-        model asks every one. ``hint_s``: the stops from states within HINT_WINDOW_S of it
-        are asked first (a yes/no question: the contact is then not the first in time)."""
+        model asks every one. ``part``: "all" the stops, or only those from states within
+        HINT_WINDOW_S of ``hint_s`` ("near"), or all but those and the rest at the end
+        ("far"); "all" with a ``hint_s`` asks the near ones first (a yes/no question: the
+        contact is then not the first in time)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -527,7 +537,8 @@ class GraphPlanner:
         stops = _stop_states(trajectory)
         if hint_s is not None:
             near = np.abs(trajectory.times[stops] - hint_s) <= HINT_WINDOW_S
-            stops = np.concatenate([stops[near], stops[~near]])
+            stops = {"near": stops[near], "far": stops[~near]}.get(
+                part, np.concatenate([stops[near], stops[~near]]))
         j = 0
         while j < len(stops):
             if self.robot.collision == "fast":
@@ -549,6 +560,8 @@ class GraphPlanner:
                     and not self.exact.segment_free(q, states[-1], statics, margin=0.0,
                                                     resolution=self.config.resolution):
                 return Contact(float(trajectory.times[i]), -1, q, statics[0], 0.0)
+        if part == "near":
+            return None
         # the last stop is staying at the end: the arm arrives, then rests there
         end = trajectory.positions[-1]
         contact = first_contact(self.robot, np.array([0.0, REST_HORIZON_S]),

@@ -126,6 +126,25 @@ def test_every_published_trajectory_keeps_a_certified_stop_from_each_state(plann
     assert published >= 2
 
 
+def test_a_refusal_asked_near_a_hint_is_the_certified_stops_answer(planner, fast):
+    """`_refusal` (the stops near a hint first, then the instants near it, then the rest)
+    refuses exactly the trajectories that `_contact` (every instant, then every stop in
+    time order, then the rest at the end) refuses, whatever the hint."""
+    q0, q1 = _long_move()
+    tr = planner.plan(q0, q1, ()).trajectory
+    rng = np.random.default_rng(13)
+    answers = set()
+    for k, (ball, v) in enumerate(_rising_scenes(fast, tr, rng, 16)):
+        if k % 4 == 0:  # one in four passes high above the arm
+            ball = ball.moved_to(ball.position + [0.0, 0.0, 1.5])
+        scene = Scene((ball,), (swept(ball, v, 0.3),), ((ball, v),), AGE)
+        refused = planner._contact(tr, scene, 0.01) is not None
+        for hint in (None, rng.uniform(0.0, tr.duration), tr.duration + 1.0):
+            assert (planner._refusal(tr, scene, 0.01, hint) is not None) == refused
+        answers.add(refused)
+    assert answers == {True, False}
+
+
 def _executing(planner: GraphPlanner, space_time: bool) -> ReactivePlanner:
     runtime = ReactivePlanner(planner, RuntimeConfig(space_time=space_time))
     q0, q1 = _long_move()
