@@ -55,6 +55,8 @@ random sphere, box, cylinder or point set near a random surface point of the arm
 mesh on every sample, see docs/BENCHMARKS.md. (The old model — ``panda_collision.urdf``
 grown to contain the meshes — needed 6.5 mm here for its 2.3 mm surface sampling and its
 spheres reached up to 30 mm beyond the meshes.)"""
+PACKS_KEPT = 8
+"""Obstacle tuples whose packed arrays a sphere model keeps (`SphereModel._packed`)."""
 SURFACE_STEP = 0.004
 """Largest edge (m) of the triangles the mesh surfaces are cut into to check that the old
 model's spheres contain them (:func:`containment_inflation`); every surface point is within
@@ -253,7 +255,7 @@ class SphereModel:
         self.margin = margin
         self.radii = self.raw_radii + self.inflation + margin
         self.bulge: np.ndarray | None = None  # per sphere, its proven reach beyond the meshes
-        self._pack_cache: tuple | None = None  # (obstacle tuple, its packed arrays)
+        self._pack_cache: list[tuple] = []  # (obstacle tuple, its packed arrays), newest first
         self.kernel_args = sphere_kernels.pack_robot(
             np.array([model.jointPlacements[j].rotation for j in range(1, 8)]),
             np.array([model.jointPlacements[j].translation for j in range(1, 8)]),
@@ -261,16 +263,19 @@ class SphereModel:
         self._kernel_order = sphere_kernels.kernel_order(self.joints, self.centers)
 
     def _packed(self, obstacles: Sequence[Shape]) -> tuple:
-        """The kernels' arrays of ``obstacles``, kept for the same (immutable) tuple: packing
-        21 shapes costs ~110 µs of Python, several times the kernel's own work, and a search
-        asks about the same obstacle tuple thousands of times. A list is packed afresh (it
-        may be changed in place)."""
+        """The kernels' arrays of ``obstacles``, kept for the PACKS_KEPT last (immutable)
+        tuples: packing 21 shapes costs ~110 µs of Python, several times the kernel's own
+        work, a search asks about the same obstacle tuple thousands of times, and a re-plan
+        goes back and forth between a few (the swept obstacles, the statics, one more
+        region). A list is packed afresh (it may be changed in place)."""
         if not isinstance(obstacles, tuple):
             return sphere_kernels.pack_obstacles(obstacles)
-        cached = self._pack_cache
-        if cached is None or cached[0] is not obstacles:
-            cached = self._pack_cache = (obstacles, sphere_kernels.pack_obstacles(obstacles))
-        return cached[1]
+        for kept, packed in self._pack_cache:
+            if kept is obstacles:
+                return packed
+        packed = sphere_kernels.pack_obstacles(obstacles)
+        self._pack_cache = [(obstacles, packed), *self._pack_cache[:PACKS_KEPT - 1]]
+        return packed
 
     def closest(self, q: np.ndarray, obstacles: Sequence[Shape]) -> tuple[float, int, int]:
         """(distance, sphere index, obstacle index) of the nearest sphere-obstacle pair in
@@ -283,6 +288,14 @@ class SphereModel:
         """(N,) minimum signed distance of configurations (N, 7) to the obstacles."""
         return sphere_kernels.batch_distances(np.ascontiguousarray(Q, dtype=float),
                                               *self.kernel_args, *self._packed(obstacles))
+
+    def band_states(self, Q: np.ndarray, obstacles: Sequence[Shape], margin: float,
+                    floor: float, budget: int) -> np.ndarray | None:
+        """Indices of the configurations (N, 7) within ``margin`` of the obstacles, or None
+        when one is at or below ``floor`` or more than ``budget`` are within it
+        (`sphere_kernels.band_states`)."""
+        return sphere_kernels.band_states(np.ascontiguousarray(Q, dtype=float), margin, floor,
+                                          budget, *self.kernel_args, *self._packed(obstacles))
 
     def segment_clear(self, q0: np.ndarray, q1: np.ndarray, steps: int,
                       obstacles: Sequence[Shape], margin: float) -> bool:

@@ -34,6 +34,9 @@ from damon_ros.core.kinematics import FINGER_OPENING, TCP_FRAME, Chain, load_arm
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, JointLimits, joint_limits
 from damon_ros.core.shapes import Shape
 
+SELF_FREE_KEPT = 4096
+"""Segments whose self-collision answer `Robot.segment_self_collision_free` keeps."""
+
 
 @dataclass(frozen=True)
 class Clearance:
@@ -116,6 +119,7 @@ class Robot:
         self.shoulder, self.reach = _reach_bound(model, self.tcp_id)
         self._request = coal.DistanceRequest()
         self._request.enable_signed_distance = True
+        self._self_free: dict[tuple[bytes, bytes, float], bool] = {}  # segment_self_…
 
     @cached_property
     def spheres(self) -> SphereModel:
@@ -447,11 +451,10 @@ class Robot:
         mesh query only runs in that thin band."""
         if self.exact_budget <= 0:
             return False
-        d = self.spheres.distances(Q, obstacles)
-        near = np.flatnonzero(d <= margin)
-        if np.any(d[near] <= margin - self.contact_band) or len(near) > self.exact_budget:
-            return False
-        return all(self._mesh_keeps(Q[i], obstacles, margin) for i in near)
+        near = self.spheres.band_states(Q, obstacles, margin, margin - self.contact_band,
+                                        self.exact_budget)
+        return near is not None and all(self._mesh_keeps(Q[i], obstacles, margin)
+                                        for i in near)
 
     def _mesh_keeps(self, q: np.ndarray, obstacles: Sequence[Shape], margin: float) -> bool:
         """Every mesh keeps more than ``margin`` from every obstacle: the decision alone, so
@@ -491,8 +494,18 @@ class Robot:
 
     def segment_self_collision_free(self, q0, q1, resolution: float = 0.1) -> bool:
         """No self-collision of the exact meshes along a straight segment, sampled at most
-        ``resolution`` rad apart (the SRDF's disabled pairs ignored)."""
+        ``resolution`` rad apart (the SRDF's disabled pairs ignored). The answers for the
+        last SELF_FREE_KEPT segments are kept: it depends on the arm alone, and a planner
+        re-certifies the same segments (a stored route, a path's re-check) at every
+        re-plan, ~60 us a state on the meshes."""
         q0, q1 = self._check_q(q0), self._check_q(q1)
-        n = self.steps(q0, q1, resolution)
-        return not any(self.self_collision(q0 + s * (q1 - q0))
-                       for s in np.linspace(0.0, 1.0, n + 1))
+        key = (q0.tobytes(), q1.tobytes(), float(resolution))
+        known = self._self_free.get(key)
+        if known is None:
+            n = self.steps(q0, q1, resolution)
+            known = not any(self.self_collision(q0 + s * (q1 - q0))
+                            for s in np.linspace(0.0, 1.0, n + 1))
+            if len(self._self_free) >= SELF_FREE_KEPT:
+                self._self_free.clear()
+            self._self_free[key] = known
+        return known

@@ -175,7 +175,7 @@ def _placed(fr, fp, j, c):
 
 @njit(cache=True)
 def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, rot,
-                    params, hull, fr, fp, where, stop=-np.inf, first_group=0):
+                    params, hull, fr, fp, where, stop=-np.inf, first_group=0, offset=None):
     """min(signed distance, limit) of one configuration, through two levels of bounds: a
     joint's spheres are skipped for an obstacle whose distance to the joint's bounding
     sphere (``jb``) is at least the best so far, then a group's (the signed distance is
@@ -184,7 +184,9 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
     7-21 shapes. Returns at the first sphere at or below ``stop`` (a yes/no question: that
     sphere's distance, not the minimum). Groups before ``first_group`` are left out
     (`fixed_groups`: the base's, already checked). ``where`` receives (sphere, obstacle) of
-    the best pair, or -1."""
+    the best pair, or -1. ``offset`` (K,), optional: obstacle k's distances less
+    ``offset[k]`` (its own required clearance: one call for obstacles that each need a
+    different one, the space-time check's movers)."""
     _frames(q, jr, jp, fr, fp)
     best = limit
     where[0], where[1] = -1, -1
@@ -198,7 +200,8 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
         x, y, z = _placed(fr, fp, j, jb[j])
         any_near = False
         for k in range(kind.shape[0]):
-            near[k] = _signed(x, y, z, kind, pos, rot, params, hull, k) - jb[j, 3] < best
+            near[k] = _signed(x, y, z, kind, pos, rot, params, hull, k) - jb[j, 3] - (
+                0.0 if offset is None else offset[k]) < best
             any_near = any_near or near[k]
         if not any_near:
             g = g_end
@@ -206,11 +209,13 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
         for h in range(g, g_end):
             x, y, z = _placed(fr, fp, j, gc[h])
             for k in range(kind.shape[0]):
-                if not near[k] or _signed(x, y, z, kind, pos, rot, params, hull, k) - gr[h] >= best:
+                off = 0.0 if offset is None else offset[k]
+                if not near[k] or \
+                        _signed(x, y, z, kind, pos, rot, params, hull, k) - gr[h] - off >= best:
                     continue
                 for s_i in range(gs[h], ge[h]):
                     cx, cy, cz = _placed(fr, fp, j, sc[s_i])
-                    d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k) - sr[s_i]
+                    d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k) - sr[s_i] - off
                     if d < best:
                         best = d
                         where[0], where[1] = s_i, k
@@ -257,6 +262,32 @@ def batch_distances(Q, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos, ro
         out[n] = _distance_below(Q[n], np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind,
                                  pos, rot, params, hull, fr, fp, where)
     return out
+
+
+@njit(cache=True)
+def band_states(Q, margin, floor, budget, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, pos,
+                rot, params, hull):
+    """The states of Q (N, 7) within ``margin`` of the obstacles, or None when one is at or
+    below ``floor`` or more than ``budget`` are within it: the fast model's side of the
+    exact band (`Robot._exact_band`), with each state's distance bounded by the margin and
+    cut short at the floor instead of computed in full (`batch_distances`: ~1 ms a
+    segment among a mover's swept shapes, where nothing beyond the margin matters)."""
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    where = np.empty(2, np.int64)
+    near = np.empty(Q.shape[0], np.int64)
+    n = 0
+    for i in range(Q.shape[0]):
+        d = _distance_below(Q[i], margin + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb,
+                            kind, pos, rot, params, hull, fr, fp, where, floor)
+        if d <= floor:
+            return None
+        if d <= margin:
+            if n == budget:
+                return None
+            near[n] = i
+            n += 1
+    return near[:n]
 
 
 @njit(cache=True)

@@ -18,13 +18,22 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, START_LIMIT_TOLERANCE, JointLimits
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.graph import LatentGraph
 from damon_ros.planning.graph_search import GraphSearch
-from damon_ros.planning.space_time import Contact, Prediction, first_contact, predicted_region
+from damon_ros.planning.space_time import (
+    HINT_WINDOW_S,
+    Contact,
+    Prediction,
+    first_contact,
+    predicted_region,
+    refused_at,
+    stops_screen,
+)
 
 
 @dataclass(frozen=True)
@@ -128,6 +137,8 @@ and the arm re-routed 3x as often as with the swept check (stress bench, slow mo
 REST_HORIZON_S = 1.0
 """An arm at rest (holding, or at the end of a stop or an escape) is checked this long
 against the movers' predictions: longer than the hold's retry and a re-route's latency."""
+CLEARANCES_KEPT = 8
+"""(state, obstacle tuple) pairs whose clearance `GraphPlanner.clearance` keeps."""
 
 
 @dataclass
@@ -255,6 +266,8 @@ class GraphPlanner:
             np.ascontiguousarray(graph.weights, np.float64))
         self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
         self._fallback_failures = 0  # toward the current goal: escalates the budget
+        self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
+        self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
 
     @property
     def exact(self):
@@ -273,9 +286,15 @@ class GraphPlanner:
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
+        if self.robot.collision == "fast":  # the exact band's fast side
+            self.robot.spheres.band_states(q[None], [probe], self.config.margin, 0.0, 1)
         from damon_ros.planning import space_time
+        from damon_ros.planning.trajectory import Trajectory, braking_states
 
         space_time.warm_up(self.robot)
+        zero = np.zeros((2, 7))
+        _stop_states(Trajectory(np.array([0.0, 0.1]), np.vstack([q, q]), zero, zero))
+        braking_states(q, np.full(7, 0.5), self.limits, BRAKE_LATENCY_S)  # a stop flagged
         if self.config.fallback_budget_s > 0.0:  # a first fallback should not pay for these
             if self.robot.collision == "fast":
                 from damon_ros.planning import path_shortcutting, rrt_connect
@@ -302,10 +321,21 @@ class GraphPlanner:
 
     def clearance(self, q: np.ndarray, obstacles: Sequence[Shape]) -> float:
         """The robot model's distance alone (no witness points: a start margin is asked for
-        at every path check, ~20 µs this way against ~0.4 ms with them)."""
+        at every path check, ~20 µs this way against ~0.4 ms with them). The last
+        CLEARANCES_KEPT answers for obstacle tuples are kept: a re-plan asks the same one
+        for each query it builds (the route, the brake, the re-route around a region)."""
         if not obstacles:
             return math.inf
-        return float(self.robot.distances(np.asarray(q, float)[None], obstacles)[0])
+        q = np.asarray(q, float)
+        if not isinstance(obstacles, tuple):
+            return float(self.robot.distances(q[None], obstacles)[0])
+        key = q.tobytes()
+        for kept_q, kept, d in self._clearances:
+            if kept is obstacles and kept_q == key:
+                return d
+        d = float(self.robot.distances(q[None], obstacles)[0])
+        self._clearances = [(key, obstacles, d), *self._clearances[:CLEARANCES_KEPT - 1]]
+        return d
 
     def _split_near(self, q: np.ndarray, obstacles: Sequence[Shape]
                     ) -> tuple[tuple[Shape, ...], tuple[Shape, ...]]:
@@ -426,7 +456,8 @@ class GraphPlanner:
             contact = self._contact(result.trajectory, scene, margin)
             if contact is None:
                 break
-            delayed = self._delayed(result.trajectory, scene, margin) if at_rest else None
+            delayed = self._delayed(result.trajectory, scene, margin,
+                                    contact.time_s) if at_rest else None
             if delayed is not None:  # re-timed: wait where it stands until the mover passed
                 result.trajectory = delayed
                 break
@@ -457,7 +488,29 @@ class GraphPlanner:
         return contact if contact is not None else self._stop_contact(trajectory, scene,
                                                                         margin)
 
-    def _stop_contact(self, trajectory, scene: Scene, margin: float):
+    def _refusal(self, trajectory, scene: Scene, margin: float,
+                 hint_s: float | None = None) -> float | None:
+        """The time of a refused instant or stop when `_contact` is not None, else None:
+        without describing the contact, for the yes/no of a delayed start or an escape's
+        rest. With ``hint_s`` (where a similar trajectory was refused) the stops from states
+        near it go first, then the instants near it (`space_time.refused_at`), then the
+        rest of each: the same checks in another order, so the same answer, sooner (a
+        delayed start was mostly refused by a stop near where the last one was)."""
+        if hint_s is not None:
+            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near")
+            if contact is not None:
+                return contact.time_s
+        t = refused_at(self.robot, trajectory.times, trajectory.positions, scene.moving,
+                       margin, self.config.resolution, self.config.prediction, scene.age_s,
+                       hint_s)
+        if t is not None:
+            return t
+        contact = self._stop_contact(trajectory, scene, margin, hint_s,
+                                     "all" if hint_s is None else "far")
+        return None if contact is None else contact.time_s
+
+    def _stop_contact(self, trajectory, scene: Scene, margin: float,
+                      hint_s: float | None = None, part: str = "all"):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -467,7 +520,13 @@ class GraphPlanner:
         static obstacles on the fast model. A scene without movers is not checked: its
         stops stay on certified segments but for such an overshoot (the cost of a static
         scene stays what it was). The end state is checked at rest for REST_HORIZON_S: an
-        arm that arrives just before a mover passes through its goal has no stop there."""
+        arm that arrives just before a mover passes through its goal has no stop there.
+        On the fast model the stops are screened in one compiled call
+        (`space_time.stops_screen`); a stop it flags is asked again here, as the meshes'
+        model asks every one. ``part``: "all" the stops, or only those from states within
+        HINT_WINDOW_S of ``hint_s`` ("near"), or all but those and the rest at the end
+        ("far"); "all" with a ``hint_s`` asks the near ones first (a yes/no question: the
+        contact is then not the first in time)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -475,7 +534,21 @@ class GraphPlanner:
         statics = scene.statics().ahead
         from damon_ros.planning.trajectory import braking_states
 
-        for i in _stop_states(trajectory):
+        stops = _stop_states(trajectory)
+        if hint_s is not None:
+            near = np.abs(trajectory.times[stops] - hint_s) <= HINT_WINDOW_S
+            stops = {"near": stops[near], "far": stops[~near]}.get(
+                part, np.concatenate([stops[near], stops[~near]]))
+        j = 0
+        while j < len(stops):
+            if self.robot.collision == "fast":
+                j = stops_screen(self.robot, trajectory, stops, j, scene.moving,
+                                 margin + STOP_MARGIN_M, self.config.resolution, p, tau0,
+                                 self.limits, BRAKE_LATENCY_S, statics)[0]
+                if j < 0:
+                    break
+            i = int(stops[j])
+            j += 1
             q, qd = trajectory.positions[i], trajectory.velocities[i]
             times, states = braking_states(q, qd, self.limits, BRAKE_LATENCY_S)
             contact = first_contact(self.robot, times, states, scene.moving,
@@ -487,6 +560,8 @@ class GraphPlanner:
                     and not self.exact.segment_free(q, states[-1], statics, margin=0.0,
                                                     resolution=self.config.resolution):
                 return Contact(float(trajectory.times[i]), -1, q, statics[0], 0.0)
+        if part == "near":
+            return None
         # the last stop is staying at the end: the arm arrives, then rests there
         end = trajectory.positions[-1]
         contact = first_contact(self.robot, np.array([0.0, REST_HORIZON_S]),
@@ -540,10 +615,12 @@ class GraphPlanner:
             return True, contact.describe()
         return False, ""
 
-    def _delayed(self, trajectory, scene: Scene, margin: float):
+    def _delayed(self, trajectory, scene: Scene, margin: float, refused_s: float):
         """``trajectory`` started after a wait at its first state (the shortest of
         START_DELAYS_S) when that makes it certified in space and time, else None: a mover
-        about to cross the way is let past, the waiting arm checked against it as well."""
+        about to cross the way is let past, the waiting arm checked against it as well.
+        ``refused_s``: where the trajectory was refused, in its own time; each delayed start
+        is asked there first (`_refusal`), then where the last delay was refused."""
         from damon_ros.planning.trajectory import Trajectory, concatenate
 
         q0 = trajectory.positions[:1]
@@ -552,8 +629,10 @@ class GraphPlanner:
             wait = Trajectory(np.array([0.0, delay]), np.vstack([q0, q0]),
                               np.vstack([rest, rest]), np.vstack([rest, rest]))
             delayed = concatenate(wait, trajectory)
-            if self._contact(delayed, scene, margin) is None:
+            refused_at_s = self._refusal(delayed, scene, margin, refused_s + delay)
+            if refused_at_s is None:
                 return delayed
+            refused_s = refused_at_s - delay
         return None
 
     def stop_trajectory(self, q: np.ndarray, qd: np.ndarray | None):
@@ -842,12 +921,11 @@ class GraphPlanner:
         """A* over active safe vertices plus start and goal; edges on the found path are
         checked in order and a blocked one removed before searching again (lazy PRM). The
         A* itself is compiled (`graph_search`): one iteration is well under a millisecond."""
-        g = self.graph
         active_ids = np.flatnonzero(active)
         start_links = self._attach(query.q_start, active_ids)
         goal_links = dict(self._attach(query.q_goal, active_ids))
         direct = float(np.linalg.norm(query.q_goal - query.q_start))
-        heuristic = np.linalg.norm(g.q - query.q_goal, axis=1)
+        heuristic = self._heuristic(query.q_goal)
         while query.iterations == 0 or (query.iterations < self.config.max_lazy_iterations
                                         and time.perf_counter() < query.deadline):
             query.iterations += 1
@@ -861,6 +939,16 @@ class GraphPlanner:
             if all(query.edge_free(u, v) for u, v in zip(path, path[1:], strict=False)):
                 return path
         return None
+
+    def _heuristic(self, q_goal: np.ndarray) -> np.ndarray:
+        """A*'s heuristic, every vertex's joint-space distance to ``q_goal``: kept for the
+        last goal, which every re-plan toward it and every widened search asks for again
+        (~0.5 ms a time over the whole graph)."""
+        cached = self._heuristic_cache
+        if cached is None or not np.array_equal(cached[0], q_goal):
+            cached = self._heuristic_cache = (q_goal.copy(), np.linalg.norm(
+                self.graph.q - q_goal, axis=1))
+        return cached[1]
 
     def _shortcut(self, path: np.ndarray, query: _Query) -> np.ndarray:
         """Greedy shortcutting: from each kept waypoint jump to the farthest later waypoint
@@ -983,7 +1071,7 @@ class GraphPlanner:
         time with its stops."""
         from damon_ros.planning.trajectory import held_until
 
-        return self._contact(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
+        return self._refusal(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
                              scene, margin) is None
 
     def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
@@ -1043,19 +1131,27 @@ def _via(route: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarr
     return path[np.concatenate([[True], step > 1e-9])]
 
 
-def _stop_states(trajectory) -> list[int]:
+def _stop_states(trajectory) -> np.ndarray:
     """Indices of the moving states whose stops `_stop_contact` checks: the first moving
     one, then each STOP_EVERY_RAD (largest joint) or STOP_EVERY_S after the last."""
     from damon_ros.planning.trajectory import AT_REST_RAD_S
 
-    moving = np.max(np.abs(trajectory.velocities), axis=1) >= AT_REST_RAD_S
-    out: list[int] = []
-    for i in np.flatnonzero(moving):
-        if not out or trajectory.times[i] - trajectory.times[out[-1]] >= STOP_EVERY_S or \
-                np.max(np.abs(trajectory.positions[i] - trajectory.positions[out[-1]])) >= \
-                STOP_EVERY_RAD:
-            out.append(int(i))
-    return out
+    return _stop_indices(trajectory.times, trajectory.positions, trajectory.velocities,
+                         AT_REST_RAD_S, STOP_EVERY_S, STOP_EVERY_RAD)
+
+
+@njit(cache=True)
+def _stop_indices(times, positions, velocities, at_rest, every_s, every_rad):
+    out = np.empty(times.shape[0], np.int64)
+    n = 0
+    for i in range(times.shape[0]):
+        if np.max(np.abs(velocities[i])) < at_rest:
+            continue
+        if n == 0 or times[i] - times[out[n - 1]] >= every_s or \
+                np.max(np.abs(positions[i] - positions[out[n - 1]])) >= every_rad:
+            out[n] = i
+            n += 1
+    return out[:n]
 
 
 def _timed(trajectory) -> tuple[np.ndarray, np.ndarray]:

@@ -202,3 +202,5 @@ def warm_up(spheres) -> None:
             np.zeros(3), 0.02, 0, np.zeros(1, np.int64), tuple(spheres.kernel_args),
             sphere_kernels.pack_obstacles(probe), 0)
     _first_group(tuple(spheres.kernel_args), sphere_kernels.pack_obstacles(probe), 0.0)
+    sphere_kernels.motion_clear(q, q + 0.01, 0.0, 0.02, tuple(spheres.kernel_args),
+                                sphere_kernels.pack_obstacles(probe))  # the direct try

@@ -31,6 +31,7 @@ are not checked here: the path checks certify them, at the cost they always had.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ from numba import njit
 
 from damon_ros.core import sphere_kernels
 from damon_ros.core.shapes import Shape
+from damon_ros.planning.trajectory import braking_kernel
 
 
 @dataclass(frozen=True)
@@ -92,11 +94,22 @@ def check_instants(times: np.ndarray, positions: np.ndarray, resolution: float,
     """(times, states) to check: the trajectory's samples, subdivided (linearly) where a
     joint moves more than ``resolution`` or the region more than ``step`` between two, then
     thinned to the fewest that keep both bounds between consecutive instants."""
-    dq = np.max(np.abs(np.diff(positions, axis=0)), axis=1)
-    dt = np.diff(times)
-    pieces = np.maximum(1, np.maximum(np.ceil(dq / resolution), np.ceil(dt * rate / step)))
-    pieces = pieces.astype(np.int64)
-    return _thinned(*_subdivided(times, positions, pieces), resolution, rate, step)
+    return _instants(np.asarray(times, float), np.ascontiguousarray(positions, float),
+                     resolution, rate, step)
+
+
+@njit(cache=True)
+def _instants(times, positions, resolution, rate, step):
+    """`check_instants`, compiled (the certified-stop check asks it for every stop)."""
+    pieces = np.empty(times.shape[0] - 1, np.int64)
+    for i in range(pieces.shape[0]):
+        dq = 0.0
+        for a in range(positions.shape[1]):
+            dq = max(dq, abs(positions[i + 1, a] - positions[i, a]))
+        dt = times[i + 1] - times[i]
+        pieces[i] = int(max(1.0, max(math.ceil(dq / resolution), math.ceil(dt * rate / step))))
+    t, q = _subdivided(times, positions, pieces)
+    return _thinned(t, q, resolution, rate, step)
 
 
 @njit(cache=True)
@@ -134,13 +147,16 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
                    kind, pos, rot, params, hull):
     """Index of the first instant at which some mover part comes within its required
     distance (margin + rho(tau) + half step), or -1. Each part is translated by v * tau:
-    its position, and a hull's face rows (corners and plane offset)."""
+    its position, and a hull's face rows (corners and plane offset). One distance query an
+    instant for all movers, each less its own required distance (the query's ``offset``:
+    ``d - need <= 0`` exactly when ``d <= need``): the arm's pose and its bounds once."""
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
     fr = np.empty((jr.shape[0] + 1, 3, 3))
     fp = np.empty((jr.shape[0] + 1, 3))
     where = np.empty(2, np.int64)
     moved_pos = pos.copy()
     moved_hull = hull.copy()
+    need = np.empty(kind.shape[0])
     for n in range(times.shape[0]):
         tau = tau0 + times[n]
         for k in range(kind.shape[0]):
@@ -155,13 +171,11 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
                         moved_hull[r, 3 * c + 2] = hull[r, 3 * c + 2] + dz
                     moved_hull[r, 12] = hull[r, 12] - (hull[r, 9] * dx + hull[r, 10] * dy
                                                        + hull[r, 11] * dz)
-            need = required0 + grow_lin[k] * tau + grow_quad * tau * tau
-            d = sphere_kernels._distance_below(
-                Q[n], need + 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb,
-                kind[k:k + 1], moved_pos[k:k + 1], rot[k:k + 1], params[k:k + 1], moved_hull,
-                fr, fp, where, need)
-            if d <= need:
-                return n
+            need[k] = required0 + grow_lin[k] * tau + grow_quad * tau * tau
+        if sphere_kernels._distance_below(Q[n], 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
+                                          jb, kind, moved_pos, rot, params, moved_hull, fr, fp,
+                                          where, 0.0, 0, need) <= 0.0:
+            return n
     return -1
 
 
@@ -174,25 +188,14 @@ def first_contact(robot, times: np.ndarray, positions: np.ndarray,
     compiled loop, the exact meshes one query per instant and mover."""
     if not moving:
         return None
-    tau0 = max(age_s, prediction.min_age_s)
-    horizon = tau0 + float(times[-1])
-    speeds = [float(np.linalg.norm(v)) for _, v in moving]
-    rate = max(prediction.rate(s, horizon) for s in speeds)
-    t, Q = check_instants(np.asarray(times, float), np.asarray(positions, float), resolution,
-                          rate, prediction.step_m)
-    required0 = margin + prediction.position_sigma_m + 0.5 * prediction.step_m
-    grow_lin = np.array([prediction.velocity_sigma_m_s + prediction.velocity_sigma_rel * s
-                         for s in speeds])
     if getattr(robot, "collision", "") == "fast":
-        shapes = tuple(s for s, _ in moving)
-        velocity = np.array([v for _, v in moving], float).reshape(-1, 3)
-        n = int(_first_refused(t, np.ascontiguousarray(Q), tau0, required0, grow_lin,
-                               0.5 * prediction.acceleration_m_s2, velocity,
-                               tuple(robot.spheres.kernel_args),
-                               *sphere_kernels.pack_obstacles(shapes)))
-        if n < 0:
-            return None
-        return _contact(t[n], Q[n], moving, tau0, prediction, robot)
+        found = _first_instant(robot, times, positions, moving, margin, resolution,
+                               prediction, age_s)
+        return None if found is None else _contact(*found, moving, prediction, robot)
+    tau0 = max(age_s, prediction.min_age_s)
+    speeds = [float(np.linalg.norm(v)) for _, v in moving]
+    rate = max(prediction.rate(s, tau0 + float(times[-1])) for s in speeds)
+    t, Q = check_instants(times, positions, resolution, rate, prediction.step_m)
     for ti, q in zip(t, Q, strict=True):
         for k, (shape, v) in enumerate(moving):
             tau = tau0 + ti
@@ -203,7 +206,145 @@ def first_contact(robot, times: np.ndarray, positions: np.ndarray,
     return None
 
 
-def _contact(t: float, q: np.ndarray, moving, tau0: float, prediction: Prediction,
+HINT_WINDOW_S = 0.25
+"""`refused_at` asks the instants this close to its hint first."""
+
+
+def refused_at(robot, times: np.ndarray, positions: np.ndarray,
+               moving: Sequence[tuple[Shape, np.ndarray]], margin: float, resolution: float,
+               prediction: Prediction, age_s: float = 0.0,
+               hint_s: float | None = None) -> float | None:
+    """The time of an instant that `first_contact` refuses (not necessarily the first), or
+    None when it refuses none, without describing the contact (on the fast model the
+    nearest mover's region there costs a distance query per mover, more than the check):
+    for the questions whose answer is yes or no (a delayed start, an escape's rest). The
+    instants within HINT_WINDOW_S of ``hint_s`` go first — where the same route, started
+    earlier, was refused: the same instants are asked, so the same answer comes, sooner."""
+    if not moving:
+        return None
+    if getattr(robot, "collision", "") != "fast":
+        contact = first_contact(robot, times, positions, moving, margin, resolution,
+                                prediction, age_s)
+        return None if contact is None else contact.time_s
+    m = _Movers.of(moving, prediction)
+    tau0 = max(age_s, prediction.min_age_s)
+    t, Q = check_instants(times, positions, resolution,
+                          m.rate(prediction, tau0 + float(times[-1])), prediction.step_m)
+    required0 = margin + prediction.position_sigma_m + 0.5 * prediction.step_m
+    parts = [(0, len(t))]
+    if hint_s is not None:
+        a, b = (int(i) for i in np.searchsorted(t, [hint_s - HINT_WINDOW_S,
+                                                    hint_s + HINT_WINDOW_S]))
+        parts = [(a, b), (0, a), (b, len(t))]
+    for a, b in parts:
+        n = int(_first_refused(t[a:b], Q[a:b], tau0, required0, m.grow_lin,
+                               0.5 * prediction.acceleration_m_s2, m.velocity,
+                               tuple(robot.spheres.kernel_args), *m.packed))
+        if n >= 0:
+            return float(t[a + n])
+    return None
+
+
+class _Movers:
+    """The movers in the kernels' arrays: packed shapes, velocities, speeds and growth rates,
+    kept for the same (immutable) tuple, which a re-plan asks about dozens of times (the
+    trajectory, each delayed start, each certified stop)."""
+
+    _last: tuple | None = None
+
+    def __init__(self, moving, prediction: Prediction) -> None:
+        self.speeds = np.array([float(np.linalg.norm(v)) for _, v in moving])
+        self.velocity = np.array([v for _, v in moving], float).reshape(-1, 3)
+        self.grow_lin = np.array([prediction.velocity_sigma_m_s
+                                  + prediction.velocity_sigma_rel * s for s in self.speeds])
+        self.packed = sphere_kernels.pack_obstacles(tuple(s for s, _ in moving))
+
+    @classmethod
+    def of(cls, moving, prediction: Prediction) -> _Movers:
+        last = cls._last
+        if last is None or last[0] is not moving or last[1] is not prediction:
+            if not isinstance(moving, tuple):  # a list may change in place: never kept
+                return cls(moving, prediction)
+            last = cls._last = (moving, prediction, cls(moving, prediction))
+        return last[2]
+
+    def rate(self, prediction: Prediction, horizon: float) -> float:
+        """`Prediction.rate` of the fastest mover up to ``horizon``."""
+        return max(prediction.rate(float(s), horizon) for s in self.speeds)
+
+
+def _first_instant(robot, times, positions, moving, margin, resolution, prediction, age_s):
+    """(time, state, tau0) of the first refused instant on the fast model, or None."""
+    m = _Movers.of(moving, prediction)
+    tau0 = max(age_s, prediction.min_age_s)
+    t, Q = check_instants(times, positions, resolution,
+                          m.rate(prediction, tau0 + float(times[-1])), prediction.step_m)
+    required0 = margin + prediction.position_sigma_m + 0.5 * prediction.step_m
+    n = int(_first_refused(t, Q, tau0, required0, m.grow_lin,
+                           0.5 * prediction.acceleration_m_s2, m.velocity,
+                           tuple(robot.spheres.kernel_args), *m.packed))
+    return None if n < 0 else (t[n], Q[n], tau0)
+
+
+def stops_screen(robot, trajectory, stops: np.ndarray, first: int,
+                 moving: Sequence[tuple[Shape, np.ndarray]], margin: float, resolution: float,
+                 prediction: Prediction, tau0: float, limits, coast_s: float,
+                 statics: Sequence[Shape]) -> tuple[int, int]:
+    """The certified-stop check of `GraphPlanner._stop_contact` for the stops from the
+    trajectory's states ``stops[first:]``, compiled on the fast model: from each, the
+    braking states (`trajectory.braking_kernel`), their instants (`check_instants`, at the
+    stop's own age ``tau0 + t``) against the movers with ``margin``, then the braking line
+    against the ``statics`` on the fast model (margin 0). Returns (j, 1) when stop ``j``
+    meets a mover, (j, 2) when the fast model refuses its line, (-1, 0) when none does: the
+    caller re-asks that one stop in Python (the contact to report; the meshes for a line
+    the fast model refuses), where before every stop cost ~0.5 ms of Python."""
+    m = _Movers.of(moving, prediction)
+    packed = sphere_kernels.pack_obstacles(tuple(statics)) if statics else m.packed
+    j, what = _stops_screen(
+        trajectory.times, trajectory.positions, trajectory.velocities,
+        np.asarray(stops, np.int64), first, limits.velocity, limits.acceleration, limits.jerk,
+        limits.lower, limits.upper, coast_s, tau0, prediction.min_age_s, resolution,
+        m.speeds, prediction.velocity_sigma_m_s, prediction.velocity_sigma_rel,
+        prediction.acceleration_m_s2, prediction.step_m,
+        margin + prediction.position_sigma_m + 0.5 * prediction.step_m, m.grow_lin,
+        0.5 * prediction.acceleration_m_s2, m.velocity, tuple(robot.spheres.kernel_args),
+        m.packed, packed, bool(statics))
+    return int(j), int(what)
+
+
+@njit(cache=True)
+def _stops_screen(times, positions, velocities, stops, first, vmax, amax, jmax, lower, upper,
+                  coast_s, tau0, min_age, resolution, speeds, sigma_v, sigma_rel, accel, step,
+                  required0, grow_lin, grow_quad, velocity, robot_args, movers, statics,
+                  check_statics):
+    kind, pos, rot, params, hull = movers
+    s_kind, s_pos, s_rot, s_params, s_hull = statics
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
+    for j in range(first, stops.shape[0]):
+        i = stops[j]
+        bt, bq = braking_kernel(positions[i], velocities[i], vmax, amax, jmax, lower, upper,
+                                coast_s, 4)
+        age = max(tau0 + times[i], min_age)
+        horizon = age + bt[-1]
+        rate = -np.inf
+        for s in speeds:  # Prediction.rate, term for term
+            rate = max(rate, s + sigma_v + sigma_rel * s + accel * horizon)
+        t, Q = _instants(bt, bq, resolution, rate, step)
+        if _first_refused(t, Q, age, required0, grow_lin, grow_quad, velocity, robot_args,
+                          kind, pos, rot, params, hull) >= 0:
+            return j, 1
+        if check_statics:
+            end = bq[bq.shape[0] - 1].copy()
+            start = positions[i].copy()
+            steps = max(1, sphere_kernels.motion_steps(start, end, resolution))
+            if not sphere_kernels.segment_clear(start, end, steps, 0.0, jr, jp, sj, sc, sr, gj,
+                                                gs, ge, gc, gr, jb, s_kind, s_pos, s_rot,
+                                                s_params, s_hull):
+                return j, 2
+    return -1, 0
+
+
+def _contact(t: float, q: np.ndarray, tau0: float, moving, prediction: Prediction,
              robot) -> Contact:
     """The contact at instant ``t``: the nearest mover there."""
     tau = tau0 + t
@@ -243,3 +384,12 @@ def warm_up(robot) -> None:
                  (Shape("points", (), np.array(where), points=np.eye(3) * 0.05),
                   np.array([0.0, 0.1, 0.0])))
         first_contact(robot, np.array([0.0, 0.5]), q, probe, 0.01, 0.02, Prediction())
+        refused_at(robot, np.array([0.0, 0.5]), q, probe, 0.01, 0.02, Prediction(),
+                   hint_s=0.2)
+        if hasattr(robot, "limits"):  # a moving state's stop, against movers and a static
+            from damon_ros.planning.trajectory import Trajectory
+
+            rates = np.array([[0.0] * 7, [0.2] + [0.0] * 6])
+            stops_screen(robot, Trajectory(np.array([0.0, 0.5]), q, rates, np.zeros((2, 7))),
+                         np.array([1]), 0, probe, 0.01, 0.02, Prediction(), 0.033,
+                         robot.limits, 0.03, (probe[0][0],))

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from ruckig import ControlInterface, InputParameter, Result, Ruckig
 from ruckig import Trajectory as _RuckigTrajectory
 
@@ -199,6 +200,17 @@ class Trajectory:
         dof = self.positions.shape[1]
         self.velocities = _as_matrix("velocities", self.velocities, n, dof)
         self.accelerations = _as_matrix("accelerations", self.accelerations, n, dof)
+
+    @classmethod
+    def _built(cls, times, positions, velocities, accelerations) -> Trajectory:
+        """A trajectory of arrays joined here from valid trajectories (`concatenate`,
+        `held_until`: increasing times from 0, finite rows by construction), without
+        `__post_init__`'s checks again (~0.1 ms each, several a re-plan)."""
+        out = object.__new__(cls)
+        out.times, out.positions = times, positions
+        out.velocities, out.accelerations = velocities, accelerations
+        out._spline = None
+        return out
 
     @property
     def duration(self) -> float:
@@ -394,8 +406,9 @@ def _sample_segments(segments: list[_Segment], goal: np.ndarray, dt: float) -> T
     starts = np.concatenate(([0.0], ends[:-1]))
     # Samples on a waypoint time belong to the segment ending there (they are equal anyway).
     index = np.searchsorted(ends, times, side="left")
+    bounds = np.searchsorted(index, np.arange(len(segments) + 1), side="left")  # sorted: runs
     for i, seg in enumerate(segments):
-        rows = index == i
+        rows = slice(bounds[i], bounds[i + 1])
         q[rows], qd[rows], qdd[rows] = seg.at(times[rows] - starts[i])
     q[-1], qd[-1], qdd[-1] = goal, 0.0, 0.0
     return Trajectory(times, q, qd, qdd)
@@ -465,51 +478,96 @@ def braking_states(q, qd, limits: JointLimits, coast_s: float = 0.0,
     normalised speed from 1 to 0 (jerk down, constant deceleration if the limit is reached,
     jerk up), scaled by ``qd``. For checks that must ask "can the arm stop from here?" at
     many states: Ruckig and the 10 ms sampling of the real stop cost ~0.5 ms a state, this
-    ~30 us; the checker subdivides between samples by its own resolution rules. At rest
-    (below AT_REST_RAD_S): the hold, one state."""
+    a few us (compiled, `braking_kernel`: the certified-stop check runs it for every checked
+    state of a trajectory in one call); the checker subdivides between samples by its own
+    resolution rules. At rest (below AT_REST_RAD_S): the hold, one state."""
     q = np.asarray(q, dtype=float)
-    if qd is None or not np.all(np.isfinite(qd)) or np.max(np.abs(qd)) < AT_REST_RAD_S:
+    if qd is None or not np.all(np.isfinite(qd)):
         return np.array([0.0, HOLD_S]), np.vstack((q, q))
-    qd = np.clip(np.asarray(qd, dtype=float), -limits.velocity, limits.velocity)
-    moving = np.abs(qd) > 0.0
-    acc = float(np.min(limits.acceleration[moving] / np.abs(qd[moving])))
-    jerk = float(np.min(limits.jerk[moving] / np.abs(qd[moving])))
+    return braking_kernel(q, np.asarray(qd, dtype=float), limits.velocity, limits.acceleration,
+                          limits.jerk, limits.lower, limits.upper, max(float(coast_s), 0.0),
+                          per_phase)
+
+
+@njit(cache=True)
+def braking_kernel(q, qd, vmax, amax, jmax, lower, upper, coast_s, per_phase):
+    """`braking_states` of a finite ``qd`` (``coast_s`` >= 0), compiled: the same arithmetic
+    as the closed form in numpy it replaces, sample for sample."""
+    dof = q.shape[0]
+    fastest = 0.0
+    for a in range(dof):
+        fastest = max(fastest, abs(qd[a]))
+    if fastest < AT_REST_RAD_S:
+        held = np.empty((2, dof))
+        held[0], held[1] = q, q
+        return np.array([0.0, HOLD_S]), held
+    v_clip = np.empty(dof)
+    acc, jerk = np.inf, np.inf
+    for a in range(dof):
+        v_clip[a] = min(max(qd[a], -vmax[a]), vmax[a])
+        if v_clip[a] != 0.0:
+            acc = min(acc, amax[a] / abs(v_clip[a]))
+            jerk = min(jerk, jmax[a] / abs(v_clip[a]))
     ramp = min(acc / jerk, math.sqrt(1.0 / jerk))  # the deceleration's rise (and fall) time
     peak = jerk * ramp
     cruise = max(0.0, (1.0 - peak * ramp) / peak)
-    phases = ((ramp, -jerk), (cruise, 0.0), (ramp, jerk))
-    coast_s = max(float(coast_s), 0.0)
-    times, s = [0.0, coast_s], [0.0, coast_s]
-    x, v, a, t = coast_s, 1.0, 0.0, coast_s
-    for duration, j in phases:
-        for tau in np.linspace(0.0, duration, per_phase + 1)[1:] if duration > 0 else ():
-            times.append(t + tau)
-            s.append(x + v * tau + a * tau ** 2 / 2 + j * tau ** 3 / 6)
-        x, v, a = (x + v * duration + a * duration ** 2 / 2 + j * duration ** 3 / 6,
-                   v + a * duration + j * duration ** 2 / 2, a + j * duration)
+    durations = (ramp, cruise, ramp)
+    jerks = (-jerk, 0.0, jerk)
+    times = np.empty(2 + 3 * per_phase)
+    s = np.empty(2 + 3 * per_phase)
+    times[0], s[0], times[1], s[1] = 0.0, 0.0, coast_s, coast_s
+    n = 2
+    x, v, acc_now, t = coast_s, 1.0, 0.0, coast_s
+    for p in range(3):
+        duration, j = durations[p], jerks[p]
+        if duration > 0:
+            step = duration / per_phase  # np.linspace(0, duration, per_phase + 1)[1:]
+            for i in range(1, per_phase + 1):
+                tau = duration if i == per_phase else i * step
+                times[n] = t + tau
+                s[n] = x + v * tau + acc_now * tau ** 2 / 2 + j * tau ** 3 / 6
+                n += 1
+        x, v, acc_now = (x + v * duration + acc_now * duration ** 2 / 2 + j * duration ** 3 / 6,
+                         v + acc_now * duration + j * duration ** 2 / 2, acc_now + j * duration)
         t += duration
-    times, s = np.array(times), np.array(s)
-    keep = np.concatenate([[True], np.diff(times) > 1e-9])
-    positions = np.clip(q + np.outer(s[keep], qd), limits.lower, limits.upper)
-    return times[keep], positions
+    keep = np.zeros(n, np.bool_)
+    keep[0] = True
+    kept = 1
+    for i in range(1, n):
+        keep[i] = times[i] - times[i - 1] > 1e-9
+        kept += keep[i]
+    out_t = np.empty(kept)
+    out_q = np.empty((kept, dof))
+    m = 0
+    for i in range(n):
+        if keep[i]:
+            out_t[m] = times[i]
+            for a in range(dof):
+                out_q[m, a] = min(max(q[a] + s[i] * v_clip[a], lower[a]), upper[a])
+            m += 1
+    return out_t, out_q
 
 
 def held_until(traj: Trajectory, end_s: float) -> Trajectory:
     """``traj`` with its last point repeated at ``end_s`` when it ends before (at rest)."""
     if end_s <= traj.duration + 1e-9:
         return traj
+    if not math.isfinite(end_s):
+        raise ValueError(f"end_s must be finite, got {end_s}")
     zero = np.zeros((1, traj.positions.shape[1]))
-    return Trajectory(np.append(traj.times, end_s), np.vstack((traj.positions,
-                                                              traj.positions[-1:])),
-                      np.vstack((traj.velocities, zero)), np.vstack((traj.accelerations, zero)))
+    return Trajectory._built(np.append(traj.times, float(end_s)),
+                             np.vstack((traj.positions, traj.positions[-1:])),
+                             np.vstack((traj.velocities, zero)),
+                             np.vstack((traj.accelerations, zero)))
 
 
 def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
     """``second`` after ``first`` (which must end where ``second`` starts, both at rest)."""
     if np.max(np.abs(first.positions[-1] - second.positions[0])) > 1e-9:
         raise ValueError("trajectories to concatenate must meet")
-    return Trajectory(np.concatenate((first.times, first.duration + second.times[1:])),
-                      *(np.vstack((a, b[1:])) for a, b in (
-                          (first.positions, second.positions),
-                          (first.velocities, second.velocities),
-                          (first.accelerations, second.accelerations))))
+    times = np.concatenate((first.times, first.duration + second.times[1:]))
+    if np.any(np.diff(times) <= 0.0):  # a shift by the duration can merge close samples
+        raise ValueError("times must be strictly increasing")
+    return Trajectory._built(times, *(np.vstack((a, b[1:])) for a, b in (
+        (first.positions, second.positions), (first.velocities, second.velocities),
+        (first.accelerations, second.accelerations))))

@@ -414,3 +414,28 @@ def test_bench_robot_prints_every_row(capsys):
     for row in ("FK panda_hand_tcp", "IK, warm seed", "clearance, mesh model",
                 "segment_free per state"):
         assert row in out
+
+
+def test_the_exact_bands_fast_side_is_the_full_distance_rule(fast):
+    """`band_states` (distances bounded at the margin, cut short at the floor) picks the
+    states the full distances pick, and refuses where they refuse: one at or below the
+    floor, or more than the budget within the margin."""
+    rng = np.random.default_rng(3)
+    outcomes = set()
+    for _ in range(400):
+        obstacles = (Shape("sphere", (rng.uniform(0.03, 0.2),), rng.uniform([-0.6, -0.6, 0.0],
+                                                                        [0.8, 0.6, 1.0])),
+                     Shape("box", tuple(rng.uniform(0.05, 0.4, 3)),
+                           rng.uniform([-0.6, -0.6, 0.0], [0.8, 0.6, 1.0])))
+        q0 = rng.uniform(fast.limits.lower, fast.limits.upper)
+        Q = q0 + np.linspace(0.0, 1.0, 30)[:, None] * rng.normal(0.0, 0.3, 7)
+        margin, floor, budget = rng.choice([0.0, 0.01, 0.05]), -0.005, int(rng.integers(1, 20))
+        d = fast.distances(Q, obstacles)
+        near = np.flatnonzero(d <= margin)
+        refused = bool(np.any(d[near] <= floor)) or len(near) > budget
+        got = fast.spheres.band_states(Q, obstacles, margin, floor, budget)
+        assert (got is None) == refused
+        if got is not None:
+            assert got.tolist() == near.tolist()
+        outcomes.add("refused" if refused else "near" if len(near) else "clear")
+    assert outcomes == {"refused", "near", "clear"}

@@ -13,11 +13,13 @@ from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import (
     BRAKE_LATENCY_S,
     REST_HORIZON_S,
+    STOP_MARGIN_M,
     GraphPlanner,
     Scene,
+    _stop_states,
 )
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
-from damon_ros.planning.space_time import Prediction, first_contact
+from damon_ros.planning.space_time import Prediction, first_contact, stops_screen
 from damon_ros.planning.trajectory import braking_states, stop_trajectory, time_parameterize
 
 
@@ -35,6 +37,45 @@ def test_braking_states_are_the_stop_the_runtime_sends():
             assert np.max(np.abs(stop.sample(t)[0] - q)) < 1e-5
     times, states = braking_states(q0, np.zeros(7), limits)  # at rest: the hold
     assert np.allclose(states, q0)
+
+
+def test_the_compiled_stop_screen_flags_the_stops_the_python_check_refuses(fast):
+    """`stops_screen` (one compiled call for all stops) against the check it screens for,
+    stop by stop in Python: the braking states, `first_contact` at the stop's age with the
+    stop margin, then the braking line against the statics on the fast model."""
+    limits, p = joint_limits("panda"), Prediction()
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), limits, 0.9, 0.8, 0.8, dt=0.01)
+    stops = _stop_states(tr)
+    hand, _ = fast.tcp_pose(tr.sample(0.7 * tr.duration)[0])
+    statics = (Shape("box", (0.08, 0.08, 0.08), hand),)  # some braking lines run into it
+    tau0, margin = max(AGE, p.min_age_s), 0.01 + STOP_MARGIN_M
+    seen = set()
+    for ball, v in _rising_scenes(fast, tr, np.random.default_rng(11), 12):
+        moving = ((ball, v),)
+        expected = []
+        for j, i in enumerate(stops):
+            times, states = braking_states(tr.positions[i], tr.velocities[i], limits,
+                                           BRAKE_LATENCY_S)
+            if first_contact(fast, times, states, moving, margin, 0.02, p,
+                             tau0 + tr.times[i]) is not None:
+                expected.append((j, 1))
+            elif not fast.segment_free(tr.positions[i], states[-1], statics, 0.0, 0.02,
+                                       exact_band=False):
+                expected.append((j, 2))
+        flagged, j = [], 0
+        while True:
+            j, what = stops_screen(fast, tr, stops, j, moving, margin, 0.02, p, tau0, limits,
+                                   BRAKE_LATENCY_S, statics)
+            if j < 0:
+                break
+            flagged.append((j, what))
+            j += 1
+        assert flagged == expected
+        seen.update("mover" if w == 1 else "static" for _, w in expected)
+        if len(expected) < len(stops):
+            seen.add("clear")
+    assert seen == {"mover", "static", "clear"}  # each kind of answer came up
 
 
 def _rising_scenes(fast: Robot, trajectory, rng: np.random.Generator, n: int):
@@ -83,6 +124,25 @@ def test_every_published_trajectory_keeps_a_certified_stop_from_each_state(plann
                                  planner.config.resolution, prediction,
                                  AGE + float(tr.times[i])) is None, (i, tr.times[i])
     assert published >= 2
+
+
+def test_a_refusal_asked_near_a_hint_is_the_certified_stops_answer(planner, fast):
+    """`_refusal` (the stops near a hint first, then the instants near it, then the rest)
+    refuses exactly the trajectories that `_contact` (every instant, then every stop in
+    time order, then the rest at the end) refuses, whatever the hint."""
+    q0, q1 = _long_move()
+    tr = planner.plan(q0, q1, ()).trajectory
+    rng = np.random.default_rng(13)
+    answers = set()
+    for k, (ball, v) in enumerate(_rising_scenes(fast, tr, rng, 16)):
+        if k % 4 == 0:  # one in four passes high above the arm
+            ball = ball.moved_to(ball.position + [0.0, 0.0, 1.5])
+        scene = Scene((ball,), (swept(ball, v, 0.3),), ((ball, v),), AGE)
+        refused = planner._contact(tr, scene, 0.01) is not None
+        for hint in (None, rng.uniform(0.0, tr.duration), tr.duration + 1.0):
+            assert (planner._refusal(tr, scene, 0.01, hint) is not None) == refused
+        answers.add(refused)
+    assert answers == {True, False}
 
 
 def _executing(planner: GraphPlanner, space_time: bool) -> ReactivePlanner:

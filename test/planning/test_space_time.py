@@ -12,7 +12,12 @@ from damon_ros.core.shapes import Shape
 from damon_ros.planning import graph_planner
 from damon_ros.planning.graph_planner import Scene
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
-from damon_ros.planning.space_time import Prediction, check_instants, first_contact
+from damon_ros.planning.space_time import (
+    Prediction,
+    check_instants,
+    first_contact,
+    refused_at,
+)
 from damon_ros.planning.trajectory import time_parameterize
 
 AGE = 0.033
@@ -175,3 +180,24 @@ def test_an_arm_at_rest_waits_for_a_falling_ball_to_pass(planner, fast, monkeypa
     still = waited.times <= 0.19
     assert np.allclose(waited.positions[still], q0) and np.allclose(waited.positions[-1], q1)
     assert _true_clearance(fast, waited, ball, v) > 0.0
+
+
+def test_a_refusal_asked_near_a_hint_answers_as_the_first_contact(fast):
+    """`refused_at` (instants near the hint first, no contact described) says whether
+    `first_contact` finds one, for any hint; the time it gives is never before the first."""
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), joint_limits("panda"), 1.0, 1.0, 1.0)
+    rng = np.random.default_rng(2)
+    answers = set()
+    for k in range(10):
+        ball, v = _diver(fast, tr, rng.uniform(0.2, 0.9) * tr.duration, rng.uniform(0.2, 1.0))
+        ball = ball.moved_to(ball.position + [0.0, 0.0, 0.8 * (k % 2)])  # every other misses
+        first = first_contact(fast, tr.times, tr.positions, [(ball, v)], 0.01, 0.02,
+                              Prediction(), AGE)
+        for hint in (None, 0.0, rng.uniform(0.0, tr.duration), 5.0):
+            t = refused_at(fast, tr.times, tr.positions, ((ball, v),), 0.01, 0.02, Prediction(),
+                           AGE, hint)
+            assert (t is None) == (first is None)
+            assert t is None or t >= first.time_s
+        answers.add(first is None)
+    assert answers == {True, False}
