@@ -615,6 +615,23 @@ class GraphPlanner:
             return True, contact.describe()
         return False, ""
 
+    def keeps_clear(self, q_now: np.ndarray, remaining: np.ndarray, times, positions,
+                    obstacles) -> bool:
+        """The running trajectory, followed on, still certified with margin 0 against the
+        movers (each where it is predicted, grown as always; then REST_HORIZON_S at rest at
+        its end) and as at planning against the static obstacles: the last resort of a
+        runtime that has no route and no stop certified with λ."""
+        scene = Scene.of(obstacles)
+        if not scene.moving or self.path_threatened(q_now, remaining, scene.statics())[0]:
+            return False
+        times = np.asarray(times, float)
+        positions = np.asarray(positions, float)
+        rest = times[-1] + REST_HORIZON_S * np.array([0.25, 0.5, 0.75, 1.0])
+        return first_contact(self.robot, np.concatenate([times, rest]),
+                             np.vstack([positions, np.repeat(positions[-1:], 4, axis=0)]),
+                             scene.moving, 0.0, self.config.resolution,
+                             self.config.prediction, scene.age_s) is None
+
     def _delayed(self, trajectory, scene: Scene, margin: float, refused_s: float):
         """``trajectory`` started after a wait at its first state (the shortest of
         START_DELAYS_S) when that makes it certified in space and time, else None: a mover

@@ -230,3 +230,64 @@ def test_an_arm_resting_on_its_goal_gets_out_of_a_movers_way_and_returns(planner
     back = runtime.update(20.0, tr.positions[-1], [beside], qd_now=np.zeros(7))
     assert back is not None and back.kind == "trajectory"
     assert np.allclose(back.result.path[-1], q1)
+
+
+class _NoRoute(GraphPlanner):
+    """The shipped planner with every re-route failing: what is left is stop, evade or
+    follow on."""
+
+    def replan(self, q_now, obstacles=(), qd_now=None):
+        from damon_ros.planning.graph_planner import PlanResult
+
+        return PlanResult(False, "no route (test)")
+
+
+def test_without_a_route_the_arm_follows_on_only_while_that_keeps_clear_of_movers(planner,
+                                                                                  fast):
+    """A ball falls past the hand's way at the middle of the running trajectory: nearer
+    than λ allows, the trajectory is threatened; with no route, an arm whose trajectory
+    still keeps clear of the ball's predicted region with margin 0 follows on (no stop
+    sent: a brake there is what met a diving ball in generated scenes). A ball on the path
+    itself stops it as before."""
+    blocked = _NoRoute(planner.graph, fast, planner.limits, planner.config)
+    blocked.warm_up()
+    q0, q1 = _long_move()
+    zero = np.zeros(7)
+
+    def fresh():
+        stops = []
+        runtime = ReactivePlanner(blocked, RuntimeConfig(), on_threat=stops.append)
+        assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
+        return runtime, stops
+
+    runtime, _ = fresh()
+    tr = runtime.trajectory
+    t_mid = 0.5 * tr.duration
+    mid_q = tr.sample(t_mid)[0]
+    hand, _ = fast.tcp_pose(mid_q)
+    out = np.array([hand[0], hand[1], 0.0]) / np.linalg.norm(hand[:2])
+    v = np.array([0.0, 0.0, -0.6])  # falling past the hand's way, outside it
+
+    def ball(gap):  # level with the hand at the middle of the trajectory, ``gap`` beyond
+        centre = hand + out * (0.05 + gap) - v * (t_mid + AGE)
+        return [(Shape("sphere", (0.05,), centre, name="ball"), v)]
+
+    def scene(gap):
+        return runtime.scene(ball(gap), AGE)
+
+    threatened = clear = None
+    for gap in np.arange(0.0, 0.3, 0.001):  # the gaps where λ is lost but 0 is kept
+        threatened = blocked.trajectory_threatened(q0, tr.positions[1:], tr.times,
+                                                   tr.positions, scene(gap))[0]
+        clear = blocked.keeps_clear(q0, tr.positions[1:], tr.times, tr.positions, scene(gap))
+        if threatened and clear:
+            break
+    assert threatened and clear, "no gap with λ lost and margin 0 kept"
+    runtime, stops = fresh()
+    assert runtime.update(0.0, q0, ball(gap), qd_now=zero) is None
+    assert stops == [] and runtime.stats.followed_on == 1 and runtime.state == "executing"
+    runtime, stops = fresh()
+    assert not blocked.keeps_clear(q0, tr.positions[1:], tr.times, tr.positions, scene(-0.06))
+    event = runtime.update(0.0, q0, ball(-0.06), qd_now=zero)
+    assert stops and event is not None and event.kind in ("hold", "trajectory")
+    assert runtime.stats.followed_on == 0
