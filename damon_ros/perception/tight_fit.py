@@ -50,8 +50,9 @@ YAW_NOISE_M = 0.0025
 MAX_YAW_ERROR_RAD = 0.06
 MIN_FACING = 0.1
 """A face counts as seen only when the camera is at least this sine of an angle off its plane."""
-MAX_OBLIQUITY = 4.0
-"""An edge seen on a face at grazing incidence is stretched at most this much (cap)."""
+EDGE_SAMPLES = math.sqrt(2.0)
+"""A silhouette edge lies within this many sample spacings (the diagonal of the sampling
+grid) beyond the last sample that saw the surface, on the image plane."""
 OCTAHEDRON = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
                       dtype=float) * math.sqrt(3.0)
 """Offsets whose hull (an octahedron of vertex distance sqrt(3)) contains the unit ball."""
@@ -148,8 +149,9 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
                         for k in range(3)])
     if not visible.any():
         return None
-    centre_depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
-    delta = spacing_m(camera, config, centre_depth)
+    # the sample spacing where it is largest: at the farthest point
+    delta = spacing_m(camera, config, float(np.max((points - camera.position)
+                                                   @ camera.rotation[:, 2])))
     view = points.mean(axis=0) - camera.position
     view /= np.linalg.norm(view)
     cosines = np.abs(axes.T @ view)  # how squarely each axis's faces are seen
@@ -160,8 +162,11 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     for k in range(3):
         others = [j for j in range(3) if j != k and visible[j].any()]
         if others:
+            # One sample on the image plane is 1 / cos of it on a face seen obliquely: a
+            # face's far edge, seen at grazing incidence, lies that far beyond its last
+            # sample (a 4x cap left the far 3-4 cm of a top face seen from the side out)
             best = max(cosines[j] for j in others)
-            edge = delta * min(1.0 / max(best, 1e-6), MAX_OBLIQUITY) + margin_face
+            edge = delta / max(best, MIN_FACING) + margin_face
             lo[k] -= margin_face if visible[k, 0] else edge
             hi[k] += margin_face if visible[k, 1] else edge
             seen.append(True)
@@ -363,8 +368,13 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     if float(np.ptp(angles)) < MIN_ARC_RAD or np.mean(facing > 0.0) < 0.95:
         return None  # too little arc to fix the axis, or a hollow seen from inside
     low, high = float(local[:, 2].min()), float(local[:, 2].max())
-    depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
-    edge = spacing_m(camera, config, depth) * MAX_OBLIQUITY + config.surface_margin_m
+    depth = float(np.max((points - camera.position) @ camera.rotation[:, 2]))
+    # an end is seen as where the side's samples stop: within a sample (grid diagonal) on
+    # the image plane, which along the axis is 1 / sin of the angle between axis and view
+    ray = eye - np.array([*centre2, 0.5 * (low + high)])
+    sine = math.sqrt(max(0.0, 1.0 - (ray[2] / float(np.linalg.norm(ray))) ** 2))
+    edge = (spacing_m(camera, config, depth) * EDGE_SAMPLES / max(sine, MIN_FACING)
+            + config.surface_margin_m)
     tilt = AXIS_STEPS_RAD[-1] * 0.5 * (high - low)
     bound = float(dist.max()) + FIT_SIGMAS * rms + tilt + config.surface_margin_m
     centre = mean + frame @ np.array([*centre2, 0.5 * (low + high)])

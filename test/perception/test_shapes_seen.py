@@ -131,6 +131,24 @@ def test_a_yawed_box_gets_a_yawed_box_that_contains_it_and_is_tight(yaw_deg):
         assert np.linalg.norm(d.shape.position - truth.position) < 0.03
 
 
+def test_a_top_face_seen_at_grazing_incidence_still_bounds_the_far_side():
+    """The side camera sees a tall box's top face 11 deg from edge-on: one sample row covers
+    4 cm of it, so the far edge lies up to 1 / cos of a sample past the last row (a 4x cap
+    on that stretch left the far 3-4 cm out in every frame)."""
+    side = load_camera("camera_side.yaml")
+    box = {"name": "b", "shape": "box", "size": [0.0943, 0.1688, 0.2161], "color": "red",
+           "pose": {"position": [0.576, 0.1277, 0.5387], "orientation": [0, 0, 0.0202, 0.9998]}}
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        rgb, depth = render(side, scene_at(scenario, 0.0), 0.002, 0.01,
+                            np.random.default_rng(seed))
+        (d,) = detect(side, CONFIG, rgb, depth)
+        assert d.shape.kind == "box" and not d.partial
+        assert _inside(d.shape, [truth]) == 1.0
+        assert shapes.volume(d.shape) < 2.0 * shapes.volume(truth)
+
+
 def test_a_box_seen_only_from_its_face_is_bounded_by_the_thickness_prior():
     """Straight on and level with the camera, only the front face shows: its depth is the
     prior's (config max_thickness_m.box), not the box's width."""
