@@ -39,18 +39,26 @@ def _kernel(size: int) -> np.ndarray | None:
 _RING = np.ones((3, 3), np.uint8)
 OCCLUSION_MARGIN_MM = 30
 """A pixel next to a blob that is this much nearer than the blob belongs to an occluder."""
+SEAM_MM = 10
+"""A pixel of another colour next to a blob and at most this much farther (5 sigma of the
+depth noise) may belong to an object that meets it there and hides part of it."""
 
 
-def _occluded(inside: np.ndarray, depth: np.ndarray) -> bool:
+def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
     """Whether a nearer surface borders the blob, so part of the obstacle may be hidden.
 
-    ``inside`` and ``depth`` cover the blob's bounding box grown by one pixel.
+    ``inside``, ``depth`` and ``other`` (pixels of the other colour classes) cover the blob's
+    bounding box grown by one pixel. Another object's pixels that are not clearly behind
+    the blob (`SEAM_MM`) count as nearer too: where two objects meet (one resting on or
+    pushed into the other) the depth runs on across the seam, and either may hide part of
+    the other (a ball sunk into a pole hid its far end from the side camera, unflagged).
     """
     blob_depth = np.where(inside, depth, 0).astype(np.uint16)
     neighbour = cv2.dilate(blob_depth, _RING).astype(np.int32)
     ring = cv2.dilate(inside.view(np.uint8), _RING).astype(bool) & ~inside
     d = depth[ring].astype(np.int32)
-    return bool(np.any((d > 0) & (d < neighbour[ring] - OCCLUSION_MARGIN_MM)))
+    near = neighbour[ring] + np.where(other[ring], SEAM_MM, -OCCLUSION_MARGIN_MM)
+    return bool(np.any((d > 0) & (d < near)))
 
 
 def _class_mask(hsv: np.ndarray, ranges) -> np.ndarray:
@@ -84,12 +92,15 @@ class Segmenter:
         )
         depth_small = depth[::s, ::s]
         hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
+        masks = {color: _class_mask(hsv, ranges) for color, ranges in self.config.colors.items()}
+        coloured = np.zeros(hsv.shape[:2], np.uint8)
+        for mask in masks.values():
+            coloured |= mask
         found: list[Blob] = []
-        for color, ranges in self.config.colors.items():
-            mask = _class_mask(hsv, ranges)
+        for color, mask in masks.items():
             if cv2.countNonZero(mask) < self.min_area:
                 continue
-            found.extend(self._components(color, mask, depth_small))
+            found.extend(self._components(color, mask, depth_small, (coloured > mask)))
         return found
 
     def _roi(self, mask: np.ndarray) -> tuple[int, int, int, int]:
@@ -98,7 +109,10 @@ class Segmenter:
         x0, y0 = max(x - p, 0), max(y - p, 0)
         return x0, y0, min(x + w + p, mask.shape[1]), min(y + h + p, mask.shape[0])
 
-    def _components(self, color: str, mask: np.ndarray, depth: np.ndarray) -> list[Blob]:
+    def _components(self, color: str, mask: np.ndarray, depth: np.ndarray,
+                    other: np.ndarray) -> list[Blob]:
+        """Cleaned connected components of one class's ``mask``; ``other``: the pixels of
+        the other classes (the occlusion test)."""
         x0, y0, x1, y1 = self._roi(mask)
         raw = mask[y0:y1, x0:x1]
         clean = raw
@@ -132,7 +146,8 @@ class Segmenter:
                 v=(rows + y0 + wy0) * self.step,
                 depth_mm=d[rows, cols],
                 area_px=area * self.step**2,
-                partial=at_border or _occluded(inside, d),
+                partial=at_border or _occluded(
+                    inside, d, other[y0 + wy0:y0 + wy1, x0 + wx0:x0 + wx1]),
                 edge=outline[rows, cols],
             ))
         return blobs

@@ -20,12 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from damon_ros.tools.report import write_marked
+
 VARIANTS = {
     "latent kNN only (paper)": {"k_joint": 0},
     "joint-space kNN only (roadmap)": {"k_latent": 0},
     "both (shipped)": {},
 }
-MARK = ("<!-- ablation -->", "<!-- /ablation -->")
 GRAPH_ONLY = {"fallback_budget_s": 0.0}
 """The planner's RRT-Connect fallback is off here: the question is what each graph finds."""
 
@@ -97,18 +98,6 @@ def vae_table(rows: list[dict], epochs: int) -> list[str]:
 def _median(values) -> str:
     values = [v for v in values if v is not None and np.isfinite(v)]
     return f"{np.median(values):.2f}" if values else "–"
-
-
-def write_section(page: Path, lines: list[str]) -> None:
-    """Put ``lines`` between the markers of ``page`` (appended the first time)."""
-    text = page.read_text() if page.exists() else "# Benchmarks\n"
-    block = "\n".join([MARK[0], *lines, MARK[1]])
-    if MARK[0] in text and MARK[1] in text:
-        head, rest = text.split(MARK[0], 1)
-        text = head + block + rest.split(MARK[1], 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    page.write_text(text)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -195,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                   "from free samples — what a latent kNN graph relies on."]
     print("\n".join(lines))
     if args.page:
-        write_section(Path(args.page), lines)
+        write_marked(Path(args.page), "ablation", lines)
         print(f"table written to {args.page}")
     print(f"{len(results)} runs in {time.perf_counter() - t0:.0f} s; runs in {args.out}")
     return 0

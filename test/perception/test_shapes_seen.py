@@ -364,3 +364,17 @@ def test_a_bound_that_leaves_out_what_another_camera_saw_is_not_intersected():
                             seen=[[seen0], [seen1]])
     assert shapes.contains(shape, shapes.surface_samples(truth, 0.01), 1e-9).all()
     assert np.ptp(shapes.enclosing_vertices(shape)[:, 2]) < 0.1  # still cut to 8 cm in z
+
+
+@pytest.mark.parametrize("gap_m, partial", [(-0.03, True), (0.05, False)])
+def test_a_ball_sunk_into_a_box_flags_both_as_partial_and_one_beside_it_neither(gap_m, partial):
+    """Where two objects meet, the depth runs on across the seam: the occlusion test cannot
+    see who hides whom by a depth step, so the other colour at the same depth counts."""
+    box = {"name": "b", "shape": "box", "size": [0.1, 0.2, 0.2], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.4], "orientation": [0, 0, 0, 1]}}
+    ball = {"name": "s", "shape": "sphere", "size": [0.05], "color": "green",
+            "pose": {"position": [0.5, 0.15 + gap_m, 0.4], "orientation": [0, 0, 0, 1]}}
+    scenario = _scenario("A-001", box, ball, drop=True)
+    rgb, depth = render(CAMERA, scene_at(scenario, 0.0), 0.002, 0.01, np.random.default_rng(0))
+    found = {d.color: d.partial for d in detect(CAMERA, CONFIG, rgb, depth)}
+    assert found == {"red": partial, "green": partial}
