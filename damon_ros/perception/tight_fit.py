@@ -48,6 +48,9 @@ noise leaves on a face of a few hundred points)."""
 YAW_NOISE_M = 0.0025
 """Depth noise on a face turns into a yaw error of about this over the face's width."""
 MAX_YAW_ERROR_RAD = 0.06
+MAX_FACE_TILT_RAD = 0.1
+"""A face whose points lie on a plane tilted more than this from the box's is no face of an
+upright box (several times what depth noise leaves on a face of a few dozen points)."""
 MIN_FACING = 0.1
 """A face counts as seen only when the camera is at least this sine of an angle off its plane."""
 EDGE_SAMPLES = math.sqrt(2.0)
@@ -147,14 +150,14 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k] - reach,
                          near_high[:, k].sum() >= need and eye[k] > high[k] + reach]
                         for k in range(3)])
-    if not visible.any():
+    if not visible.any() or _tilted(local, near_low, near_high, visible):
         return None
     # the sample spacing where it is largest: at the farthest point
     delta = spacing_m(camera, config, float(np.max((points - camera.position)
                                                    @ camera.rotation[:, 2])))
-    view = points.mean(axis=0) - camera.position
-    view /= np.linalg.norm(view)
-    cosines = np.abs(axes.T @ view)  # how squarely each axis's faces are seen
+    rays = points - camera.position
+    rays /= np.sqrt((rays * rays).sum(axis=1))[:, None]
+    cosines = np.abs(rays @ axes)  # per point: how squarely each axis's faces are seen
     margin_face = config.surface_margin_m
     seen, hidden = [], []
     lo, hi = low.copy(), high.copy()
@@ -164,11 +167,17 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
         if others:
             # One sample on the image plane is 1 / cos of it on a face seen obliquely: a
             # face's far edge, seen at grazing incidence, lies that far beyond its last
-            # sample (a 4x cap left the far 3-4 cm of a top face seen from the side out)
-            best = max(cosines[j] for j in others)
-            edge = delta / max(best, MIN_FACING) + margin_face
-            lo[k] -= margin_face if visible[k, 0] else edge
-            hi[k] += margin_face if visible[k, 1] else edge
+            # sample (a 4x cap left the far 3-4 cm of a top face seen from the side out),
+            # with the obliquity of the rays there: at a far edge the face is seen more
+            # grazingly than on average (the last samples along the axis, 5 % and 3)
+            if not visible[k, 0]:
+                lo[k] -= _edge(cosines, local[:, k], others, delta, -1) + margin_face
+            else:
+                lo[k] -= margin_face
+            if not visible[k, 1]:
+                hi[k] += _edge(cosines, local[:, k], others, delta, 1) + margin_face
+            else:
+                hi[k] += margin_face
             seen.append(True)
             hidden.append(0.0)
             continue
@@ -194,6 +203,40 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def _edge(cosines: np.ndarray, along: np.ndarray, faces: list[int], delta: float,
+          sign: int) -> float:
+    """How far an edge at the ``sign`` end of ``along`` lies beyond the last sample: one
+    sample spacing over the cosine of the most squarely seen face of ``faces`` (the axes of
+    the visible faces that span it), at the most grazing of the last samples there."""
+    last = np.argsort(sign * along)[-max(3, len(along) // 20):]
+    best = max(float(cosines[last, j].min()) for j in faces)
+    return delta / max(best, MIN_FACING)
+
+
+def _tilted(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
+            visible: np.ndarray) -> bool:
+    """Whether a visible face's own points (not those on another face too) lie on a plane
+    tilted more than `MAX_FACE_TILT_RAD` from the upright box's: a small tilted box puts
+    enough of its points within the face tolerance of upright planes to pass as one, and
+    its hidden corners then stick out of the upright bound."""
+    near = (near_low, near_high)
+    on_any = near_low | near_high
+    for k in range(3):
+        for side in (0, 1):
+            if not visible[k, side]:
+                continue
+            others = on_any.copy()
+            others[:, k] = False
+            only = near[side][:, k] & ~others.any(axis=1)
+            if only.sum() < 10:
+                continue
+            face = local[only] - local[only].mean(axis=0)
+            normal = np.linalg.svd(face, full_matrices=False)[2][2]
+            if abs(normal[k]) < math.cos(MAX_FACE_TILT_RAD):
+                return True
+    return False
 
 
 def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,

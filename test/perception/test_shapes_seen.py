@@ -127,7 +127,9 @@ def test_a_yawed_box_gets_a_yawed_box_that_contains_it_and_is_tight(yaw_deg):
         est_yaw = np.degrees(2 * np.arctan2(d.shape.orientation[2], d.shape.orientation[3]))
         assert min(abs((est_yaw - yaw_deg + 45) % 90 - 45), 90) < 1.5  # axes up to a quarter turn
         assert _inside(d.shape, [truth]) == 1.0
-        assert shapes.volume(d.shape) < 1.6 * shapes.volume(truth)
+        # the hidden far edge of the top face is a sample over the cosine of the rays
+        # there beyond the last one (~2 cm here): 1.54-1.60 with the mean ray's, 1.59-1.64
+        assert shapes.volume(d.shape) < 1.7 * shapes.volume(truth)
         assert np.linalg.norm(d.shape.position - truth.position) < 0.03
 
 
@@ -378,3 +380,24 @@ def test_a_ball_sunk_into_a_box_flags_both_as_partial_and_one_beside_it_neither(
     rgb, depth = render(CAMERA, scene_at(scenario, 0.0), 0.002, 0.01, np.random.default_rng(0))
     found = {d.color: d.partial for d in detect(CAMERA, CONFIG, rgb, depth)}
     assert found == {"red": partial, "green": partial}
+
+
+
+@pytest.mark.parametrize("tilt_deg, upright", [(0.0, True), (7.0, False)])
+def test_a_tilted_box_is_not_taken_for_an_upright_one(tilt_deg, upright):
+    """A small box tilted 7 deg about y puts enough of its points within the face tolerance
+    of upright planes to pass the face test (and its hidden corners stick out of the upright
+    bound); its front face's own plane shows the tilt."""
+    from damon_ros.perception.tight_fit import fit_box
+
+    half = np.radians(tilt_deg) / 2
+    box = Shape("box", (0.07, 0.09, 0.08), np.array([0.55, 0.05, 0.45]),
+                np.array([0.0, np.sin(half), 0.0, np.cos(half)]))
+    points = shapes.surface_samples(box, 0.004)
+    local = (points - box.position) @ box.rotation()
+    normals = np.where(np.isclose(np.abs(local), 0.5 * np.asarray(box.size)), np.sign(local), 0)
+    facing = ((normals @ box.rotation().T) * (CAMERA.position - points)).sum(axis=1) > 0
+    rng = np.random.default_rng(0)
+    seen = points[facing & (np.abs(normals).sum(axis=1) == 1)]
+    seen = seen + rng.normal(0.0, 0.001, seen.shape)
+    assert (fit_box(CAMERA, seen, CONFIG) is not None) == upright
