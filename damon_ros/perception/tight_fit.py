@@ -114,8 +114,9 @@ def _percentiles_1_99(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
-    """Distance between neighbouring samples on the image plane at ``depth``."""
-    return config.downsample * depth / camera.K[0, 0]
+    """Distance between neighbouring samples of a blob's outline on the image plane at
+    ``depth``: one pixel (segmentation refines the outline to full resolution)."""
+    return depth / camera.K[0, 0]
 
 
 def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
@@ -405,7 +406,9 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     toward = eye[:2] - centre2
     if np.linalg.norm(toward) <= radius:
         return None  # the camera would be inside it
-    side = local[on_side, :2] - centre2
+    side = local[on_side & ~on_end, :2] - centre2  # (an end face's rim runs all round)
+    if len(side) < config.min_points:
+        return None
     angles = np.arctan2(side[:, 1], side[:, 0])
     facing = np.cos(angles - math.atan2(toward[1], toward[0]))
     if float(np.ptp(angles)) < MIN_ARC_RAD or np.mean(facing > 0.0) < 0.95:
