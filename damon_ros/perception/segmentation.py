@@ -112,23 +112,29 @@ class Segmenter:
         s = self.step
         if s == 1 or blob.edge is None or not blob.edge.any():
             return blob
-        reach = np.arange(-(s - 1), s)
-        dv, du = (a.ravel() for a in np.meshgrid(reach, reach, indexing="ij"))
-        u = (blob.u[blob.edge][:, None] + du[None]).ravel()
-        v = (blob.v[blob.edge][:, None] + dv[None]).ravel()
-        keep = ((u % s != 0) | (v % s != 0)) & (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (
-            v < depth.shape[0])
-        flat = np.unique(v[keep] * depth.shape[1] + u[keep])
-        v, u = np.divmod(flat, depth.shape[1])
-        d = depth[v, u]
-        hsv = cv2.cvtColor(np.ascontiguousarray(rgb[v, u][:, None, :]), cv2.COLOR_RGB2HSV)
-        ok = (d > 0) & (_class_mask(hsv, self.config.colors[blob.color])[:, 0] > 0)
-        if not ok.any():
+        u0, v0 = max(int(blob.u.min()) - s, 0), max(int(blob.v.min()) - s, 0)
+        u1 = min(int(blob.u.max()) + s + 1, depth.shape[1])
+        v1 = min(int(blob.v.max()) + s + 1, depth.shape[0])
+        # a pixel between samples lies beyond the outline when some of the grid samples
+        # around it (within a step) are not the blob's: count both in a step's square
+        grid = ((np.arange(v0, v1) % s == 0)[:, None]
+                & (np.arange(u0, u1) % s == 0)[None]).astype(np.uint8)
+        samples = np.zeros_like(grid)
+        samples[blob.v - v0, blob.u - u0] = 1
+        square = np.ones((2 * s - 1, 2 * s - 1), np.float32)
+        around = [cv2.filter2D(m, -1, square, borderType=cv2.BORDER_CONSTANT)
+                  for m in (grid, samples)]
+        beyond = (grid == 0) & (around[1] > 0) & (around[1] < around[0])
+        window = (slice(v0, v1), slice(u0, u1))
+        colour = _class_mask(cv2.cvtColor(rgb[window], cv2.COLOR_RGB2HSV),
+                             self.config.colors[blob.color])
+        rows, cols = np.nonzero(beyond & (colour > 0) & (depth[window] > 0))
+        if not len(rows):
             return blob
-        return blob._replace(u=np.concatenate([blob.u, u[ok]]),
-                             v=np.concatenate([blob.v, v[ok]]),
-                             depth_mm=np.concatenate([blob.depth_mm, d[ok]]),
-                             edge=np.concatenate([blob.edge, np.ones(int(ok.sum()), bool)]))
+        return blob._replace(u=np.concatenate([blob.u, cols + u0]),
+                             v=np.concatenate([blob.v, rows + v0]),
+                             depth_mm=np.concatenate([blob.depth_mm, depth[window][rows, cols]]),
+                             edge=np.concatenate([blob.edge, np.ones(len(rows), bool)]))
 
     def _roi(self, mask: np.ndarray) -> tuple[int, int, int, int]:
         x, y, w, h = cv2.boundingRect(mask)

@@ -48,7 +48,7 @@ noise leaves on a face of a few hundred points)."""
 YAW_NOISE_M = 0.0025
 """Depth noise on a face turns into a yaw error of about this over the face's width."""
 MAX_YAW_ERROR_RAD = 0.06
-MAX_FACE_TILT_RAD = 0.1
+MAX_FACE_TILT_RAD = 0.05
 """A face whose points lie on a plane tilted more than this from the box's is no face of an
 upright box (several times what depth noise leaves on a face of a few dozen points)."""
 MIN_FACING = 0.1
@@ -248,8 +248,10 @@ def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfi
     ranges = np.linalg.norm(p, axis=1)
     far = p * (1.0 + config.max_thickness_m["blob"] / ranges)[:, None]
     cloud = np.vstack([p, far])
-    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 + \
-        config.surface_margin_m
+    # a step and a half of the downsampled grid: the opening (segmentation) cuts the sharp
+    # corners of a silhouette by more than the outline's refinement reaches
+    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 * config.downsample \
+        + config.surface_margin_m
     try:
         cloud = cloud[ConvexHull(cloud).vertices]
     except (QhullError, ValueError):
