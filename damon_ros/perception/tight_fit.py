@@ -245,6 +245,13 @@ def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfi
     """Convex point-set bound of a blob: the hull of the visible points and of the same
     points pushed back by the blob prior along their rays, grown by the sampling margin."""
     p = np.asarray(points_optical, dtype=float)
+    # the grid samples alone: its margin is a downsampled step (below), which the outline's
+    # refinement does not shrink, and the refined pixels only made the hulls larger
+    K = camera.K
+    u = np.rint(p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]) % config.downsample
+    v = np.rint(p[:, 1] / p[:, 2] * K[1, 1] + K[1, 2]) % config.downsample
+    if np.count_nonzero((u == 0) & (v == 0)) >= 4:
+        p = p[(u == 0) & (v == 0)]
     ranges = np.linalg.norm(p, axis=1)
     far = p * (1.0 + config.max_thickness_m["blob"] / ranges)[:, None]
     cloud = np.vstack([p, far])

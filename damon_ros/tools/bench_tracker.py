@@ -7,7 +7,8 @@ gives: the share of frames whose estimate contains the true object (dense surfac
 of every part inside it — the tracker's safety rule), the median volume excess (estimate
 volume / true volume - 1), the centre error (estimate centre vs the centre of the true
 object's enclosing box), the velocity error, and the tracker's CPU time per frame (one
-process, offline; CPU rather than wall time so that a loaded machine does not inflate it).
+process and one BLAS thread as in the node, offline; CPU rather than wall time so that a
+loaded machine does not inflate it).
 Frames whose detection is flagged partial (cut off or occluded) are counted apart: their
 bound covers only what is seen. ``--out`` writes every row as JSON lines for
 ``damon-ros report --tracker``.
@@ -191,6 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"damon-ros bench-tracker: --cameras: {exc}", file=sys.stderr)
         return 2
+    from damon_ros.ros.environment import limit_threads
+
+    # one core, as the tracker node runs (`node_main`): BLAS worker threads busy-wait for
+    # work and their CPU time, counted by process_time, tripled some frames (F-001)
+    limit_threads()
     rows = [r for cameras in args.cameras
             for r in measure(scenarios, args.seconds, args.fps, args.seed, cameras)]
     print(table(rows))
