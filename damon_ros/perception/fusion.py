@@ -234,6 +234,30 @@ def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarra
     return kept or group
 
 
+def _box_meet(boxes: list[Shape]) -> Shape | None:
+    """A box that holds the intersection of several boxes (None below two, or when they do
+    not overlap): each box cut to the box, in its own axes, around each other's corners,
+    the smallest of these. Two upright boxes of one object from two cameras differ in yaw
+    by a fraction of a degree, so this is about their intersection, and a primitive: the
+    hidden depth of the front camera's box cut by what the side camera saw."""
+    best = None
+    for a in boxes if len(boxes) > 1 else []:
+        R = a.rotation()
+        hi = 0.5 * np.asarray(a.size, dtype=float)
+        lo = -hi
+        for b in boxes:
+            if b is not a:
+                corners = (enclosing_vertices(b) - a.position) @ R
+                lo, hi = np.maximum(lo, corners.min(axis=0)), np.minimum(hi, corners.max(axis=0))
+        if np.any(hi <= lo):
+            return None
+        box = Shape("box", tuple(hi - lo), a.position + R @ (0.5 * (lo + hi)), a.orientation,
+                    name=a.name)
+        if best is None or volume(box) < volume(best):
+            best = box
+    return best
+
+
 def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None,
            planes=halfspaces, motion: dict[int, float] | None = None) -> tuple[Shape, bool]:
     """One object's bound from its views: the intersection of the whole ones (or of the
@@ -260,6 +284,9 @@ def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None,
         # alone, a view's bound is as good as with one camera: grown for motion only
         motion = motion or {}
         alone = [_grown(s, motion.get(id(s), g)) for s, g in members if s.kind != "points"]
+        meet = _box_meet([_grown(s, g) for s, g in members if s.kind == "box"])
+        if meet is not None:  # several boxes: one box holds their intersection
+            alone.append(meet)
         if alone:
             sizes = [volume(a) for a in alone]  # primitives: closed forms
             primitive = alone[int(np.argmin(sizes))]

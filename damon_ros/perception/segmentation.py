@@ -39,18 +39,26 @@ def _kernel(size: int) -> np.ndarray | None:
 _RING = np.ones((3, 3), np.uint8)
 OCCLUSION_MARGIN_MM = 30
 """A pixel next to a blob that is this much nearer than the blob belongs to an occluder."""
+SEAM_MM = 10
+"""A pixel of another colour next to a blob and at most this much farther (5 sigma of the
+depth noise) may belong to an object that meets it there and hides part of it."""
 
 
-def _occluded(inside: np.ndarray, depth: np.ndarray) -> bool:
+def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
     """Whether a nearer surface borders the blob, so part of the obstacle may be hidden.
 
-    ``inside`` and ``depth`` cover the blob's bounding box grown by one pixel.
+    ``inside``, ``depth`` and ``other`` (pixels of the other colour classes) cover the blob's
+    bounding box grown by one pixel. Another object's pixels that are not clearly behind
+    the blob (`SEAM_MM`) count as nearer too: where two objects meet (one resting on or
+    pushed into the other) the depth runs on across the seam, and either may hide part of
+    the other (a ball sunk into a pole hid its far end from the side camera, unflagged).
     """
     blob_depth = np.where(inside, depth, 0).astype(np.uint16)
     neighbour = cv2.dilate(blob_depth, _RING).astype(np.int32)
     ring = cv2.dilate(inside.view(np.uint8), _RING).astype(bool) & ~inside
     d = depth[ring].astype(np.int32)
-    return bool(np.any((d > 0) & (d < neighbour[ring] - OCCLUSION_MARGIN_MM)))
+    near = neighbour[ring] + np.where(other[ring], SEAM_MM, -OCCLUSION_MARGIN_MM)
+    return bool(np.any((d > 0) & (d < near)))
 
 
 def _class_mask(hsv: np.ndarray, ranges) -> np.ndarray:
@@ -84,13 +92,49 @@ class Segmenter:
         )
         depth_small = depth[::s, ::s]
         hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
+        masks = {color: _class_mask(hsv, ranges) for color, ranges in self.config.colors.items()}
+        coloured = np.zeros(hsv.shape[:2], np.uint8)
+        for mask in masks.values():
+            coloured |= mask
         found: list[Blob] = []
-        for color, ranges in self.config.colors.items():
-            mask = _class_mask(hsv, ranges)
+        for color, mask in masks.items():
             if cv2.countNonZero(mask) < self.min_area:
                 continue
-            found.extend(self._components(color, mask, depth_small))
+            for blob in self._components(color, mask, depth_small, (coloured > mask)):
+                found.append(self._refined(blob, rgb, depth))
         return found
+
+    def _refined(self, blob: Blob, rgb: np.ndarray, depth: np.ndarray) -> Blob:
+        """The blob with the full-resolution pixels between its outline samples and the next
+        samples out that are of its colour and have depth: its silhouette is then known to a
+        pixel, not to a downsampled step (`tight_fit.spacing_m`), which halves the margins
+        that the edges of a bound get."""
+        s = self.step
+        if s == 1 or blob.edge is None or not blob.edge.any():
+            return blob
+        u0, v0 = max(int(blob.u.min()) - s, 0), max(int(blob.v.min()) - s, 0)
+        u1 = min(int(blob.u.max()) + s + 1, depth.shape[1])
+        v1 = min(int(blob.v.max()) + s + 1, depth.shape[0])
+        # a pixel between samples lies beyond the outline when some of the grid samples
+        # around it (within a step) are not the blob's: count both in a step's square
+        grid = ((np.arange(v0, v1) % s == 0)[:, None]
+                & (np.arange(u0, u1) % s == 0)[None]).astype(np.uint8)
+        samples = np.zeros_like(grid)
+        samples[blob.v - v0, blob.u - u0] = 1
+        square = np.ones((2 * s - 1, 2 * s - 1), np.float32)
+        around = [cv2.filter2D(m, -1, square, borderType=cv2.BORDER_CONSTANT)
+                  for m in (grid, samples)]
+        beyond = (grid == 0) & (around[1] > 0) & (around[1] < around[0])
+        window = (slice(v0, v1), slice(u0, u1))
+        colour = _class_mask(cv2.cvtColor(rgb[window], cv2.COLOR_RGB2HSV),
+                             self.config.colors[blob.color])
+        rows, cols = np.nonzero(beyond & (colour > 0) & (depth[window] > 0))
+        if not len(rows):
+            return blob
+        return blob._replace(u=np.concatenate([blob.u, cols + u0]),
+                             v=np.concatenate([blob.v, rows + v0]),
+                             depth_mm=np.concatenate([blob.depth_mm, depth[window][rows, cols]]),
+                             edge=np.concatenate([blob.edge, np.ones(len(rows), bool)]))
 
     def _roi(self, mask: np.ndarray) -> tuple[int, int, int, int]:
         x, y, w, h = cv2.boundingRect(mask)
@@ -98,7 +142,10 @@ class Segmenter:
         x0, y0 = max(x - p, 0), max(y - p, 0)
         return x0, y0, min(x + w + p, mask.shape[1]), min(y + h + p, mask.shape[0])
 
-    def _components(self, color: str, mask: np.ndarray, depth: np.ndarray) -> list[Blob]:
+    def _components(self, color: str, mask: np.ndarray, depth: np.ndarray,
+                    other: np.ndarray) -> list[Blob]:
+        """Cleaned connected components of one class's ``mask``; ``other``: the pixels of
+        the other classes (the occlusion test)."""
         x0, y0, x1, y1 = self._roi(mask)
         raw = mask[y0:y1, x0:x1]
         clean = raw
@@ -132,7 +179,8 @@ class Segmenter:
                 v=(rows + y0 + wy0) * self.step,
                 depth_mm=d[rows, cols],
                 area_px=area * self.step**2,
-                partial=at_border or _occluded(inside, d),
+                partial=at_border or _occluded(
+                    inside, d, other[y0 + wy0:y0 + wy1, x0 + wx0:x0 + wx1]),
                 edge=outline[rows, cols],
             ))
         return blobs

@@ -48,10 +48,14 @@ noise leaves on a face of a few hundred points)."""
 YAW_NOISE_M = 0.0025
 """Depth noise on a face turns into a yaw error of about this over the face's width."""
 MAX_YAW_ERROR_RAD = 0.06
+MAX_FACE_TILT_RAD = 0.05
+"""A face whose points lie on a plane tilted more than this from the box's is no face of an
+upright box (several times what depth noise leaves on a face of a few dozen points)."""
 MIN_FACING = 0.1
 """A face counts as seen only when the camera is at least this sine of an angle off its plane."""
-MAX_OBLIQUITY = 4.0
-"""An edge seen on a face at grazing incidence is stretched at most this much (cap)."""
+EDGE_SAMPLES = math.sqrt(2.0)
+"""A silhouette edge lies within this many sample spacings (the diagonal of the sampling
+grid) beyond the last sample that saw the surface, on the image plane."""
 OCTAHEDRON = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
                       dtype=float) * math.sqrt(3.0)
 """Offsets whose hull (an octahedron of vertex distance sqrt(3)) contains the unit ball."""
@@ -110,8 +114,9 @@ def _percentiles_1_99(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
-    """Distance between neighbouring samples on the image plane at ``depth``."""
-    return config.downsample * depth / camera.K[0, 0]
+    """Distance between neighbouring samples of a blob's outline on the image plane at
+    ``depth``: one pixel (segmentation refines the outline to full resolution)."""
+    return depth / camera.K[0, 0]
 
 
 def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
@@ -146,13 +151,14 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k] - reach,
                          near_high[:, k].sum() >= need and eye[k] > high[k] + reach]
                         for k in range(3)])
-    if not visible.any():
+    if not visible.any() or _tilted(local, near_low, near_high, visible):
         return None
-    centre_depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
-    delta = spacing_m(camera, config, centre_depth)
-    view = points.mean(axis=0) - camera.position
-    view /= np.linalg.norm(view)
-    cosines = np.abs(axes.T @ view)  # how squarely each axis's faces are seen
+    # the sample spacing where it is largest: at the farthest point
+    delta = spacing_m(camera, config, float(np.max((points - camera.position)
+                                                   @ camera.rotation[:, 2])))
+    rays = points - camera.position
+    rays /= np.sqrt((rays * rays).sum(axis=1))[:, None]
+    cosines = np.abs(rays @ axes)  # per point: how squarely each axis's faces are seen
     margin_face = config.surface_margin_m
     seen, hidden = [], []
     lo, hi = low.copy(), high.copy()
@@ -160,10 +166,19 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     for k in range(3):
         others = [j for j in range(3) if j != k and visible[j].any()]
         if others:
-            best = max(cosines[j] for j in others)
-            edge = delta * min(1.0 / max(best, 1e-6), MAX_OBLIQUITY) + margin_face
-            lo[k] -= margin_face if visible[k, 0] else edge
-            hi[k] += margin_face if visible[k, 1] else edge
+            # One sample on the image plane is 1 / cos of it on a face seen obliquely: a
+            # face's far edge, seen at grazing incidence, lies that far beyond its last
+            # sample (a 4x cap left the far 3-4 cm of a top face seen from the side out),
+            # with the obliquity of the rays there: at a far edge the face is seen more
+            # grazingly than on average (the last samples along the axis, 5 % and 3)
+            if not visible[k, 0]:
+                lo[k] -= _edge(cosines, local[:, k], others, delta, -1) + margin_face
+            else:
+                lo[k] -= margin_face
+            if not visible[k, 1]:
+                hi[k] += _edge(cosines, local[:, k], others, delta, 1) + margin_face
+            else:
+                hi[k] += margin_face
             seen.append(True)
             hidden.append(0.0)
             continue
@@ -191,16 +206,59 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     return BoxFit(shape, tuple(seen), tuple(hidden))
 
 
+def _edge(cosines: np.ndarray, along: np.ndarray, faces: list[int], delta: float,
+          sign: int) -> float:
+    """How far an edge at the ``sign`` end of ``along`` lies beyond the last sample: one
+    sample spacing over the cosine of the most squarely seen face of ``faces`` (the axes of
+    the visible faces that span it), at the most grazing of the last samples there."""
+    last = np.argsort(sign * along)[-max(3, len(along) // 20):]
+    best = max(float(cosines[last, j].min()) for j in faces)
+    return delta / max(best, MIN_FACING)
+
+
+def _tilted(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
+            visible: np.ndarray) -> bool:
+    """Whether a visible face's own points (not those on another face too) lie on a plane
+    tilted more than `MAX_FACE_TILT_RAD` from the upright box's: a small tilted box puts
+    enough of its points within the face tolerance of upright planes to pass as one, and
+    its hidden corners then stick out of the upright bound."""
+    near = (near_low, near_high)
+    on_any = near_low | near_high
+    for k in range(3):
+        for side in (0, 1):
+            if not visible[k, side]:
+                continue
+            others = on_any.copy()
+            others[:, k] = False
+            only = near[side][:, k] & ~others.any(axis=1)
+            if only.sum() < 10:
+                continue
+            face = local[only] - local[only].mean(axis=0)
+            normal = np.linalg.svd(face, full_matrices=False)[2][2]
+            if abs(normal[k]) < math.cos(MAX_FACE_TILT_RAD):
+                return True
+    return False
+
+
 def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,
                 name: str = "") -> Shape:
     """Convex point-set bound of a blob: the hull of the visible points and of the same
     points pushed back by the blob prior along their rays, grown by the sampling margin."""
     p = np.asarray(points_optical, dtype=float)
+    # the grid samples alone: its margin is a downsampled step (below), which the outline's
+    # refinement does not shrink, and the refined pixels only made the hulls larger
+    K = camera.K
+    u = np.rint(p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]) % config.downsample
+    v = np.rint(p[:, 1] / p[:, 2] * K[1, 1] + K[1, 2]) % config.downsample
+    if np.count_nonzero((u == 0) & (v == 0)) >= 4:
+        p = p[(u == 0) & (v == 0)]
     ranges = np.linalg.norm(p, axis=1)
     far = p * (1.0 + config.max_thickness_m["blob"] / ranges)[:, None]
     cloud = np.vstack([p, far])
-    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 + \
-        config.surface_margin_m
+    # a step and a half of the downsampled grid: the opening (segmentation) cuts the sharp
+    # corners of a silhouette by more than the outline's refinement reaches
+    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 * config.downsample \
+        + config.surface_margin_m
     try:
         cloud = cloud[ConvexHull(cloud).vertices]
     except (QhullError, ValueError):
@@ -357,14 +415,21 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     toward = eye[:2] - centre2
     if np.linalg.norm(toward) <= radius:
         return None  # the camera would be inside it
-    side = local[on_side, :2] - centre2
+    side = local[on_side & ~on_end, :2] - centre2  # (an end face's rim runs all round)
+    if len(side) < config.min_points:
+        return None
     angles = np.arctan2(side[:, 1], side[:, 0])
     facing = np.cos(angles - math.atan2(toward[1], toward[0]))
     if float(np.ptp(angles)) < MIN_ARC_RAD or np.mean(facing > 0.0) < 0.95:
         return None  # too little arc to fix the axis, or a hollow seen from inside
     low, high = float(local[:, 2].min()), float(local[:, 2].max())
-    depth = float(np.mean((points - camera.position) @ camera.rotation[:, 2]))
-    edge = spacing_m(camera, config, depth) * MAX_OBLIQUITY + config.surface_margin_m
+    depth = float(np.max((points - camera.position) @ camera.rotation[:, 2]))
+    # an end is seen as where the side's samples stop: within a sample (grid diagonal) on
+    # the image plane, which along the axis is 1 / sin of the angle between axis and view
+    ray = eye - np.array([*centre2, 0.5 * (low + high)])
+    sine = math.sqrt(max(0.0, 1.0 - (ray[2] / float(np.linalg.norm(ray))) ** 2))
+    edge = (spacing_m(camera, config, depth) * EDGE_SAMPLES / max(sine, MIN_FACING)
+            + config.surface_margin_m)
     tilt = AXIS_STEPS_RAD[-1] * 0.5 * (high - low)
     bound = float(dist.max()) + FIT_SIGMAS * rms + tilt + config.surface_margin_m
     centre = mean + frame @ np.array([*centre2, 0.5 * (low + high)])

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from damon_ros.tools.report import write_marked
+
 VARIANTS = {
     "latent kNN only (paper)": {"k_joint": 0},
     "joint-space kNN only (roadmap)": {"k_latent": 0},
     "both (shipped)": {},
 }
-SECTION = "ablation"
-"""Its section of docs/BENCHMARKS.md (`report.write_section`)."""
 GRAPH_ONLY = {"fallback_budget_s": 0.0}
 """The planner's RRT-Connect fallback is off here: the question is what each graph finds."""
 
@@ -184,9 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                   "from free samples — what a latent kNN graph relies on."]
     print("\n".join(lines))
     if args.page:
-        from damon_ros.tools.report import write_section
-
-        write_section(Path(args.page), SECTION, lines)
+        write_marked(Path(args.page), "ablation", lines)
         print(f"table written to {args.page}")
     print(f"{len(results)} runs in {time.perf_counter() - t0:.0f} s; runs in {args.out}")
     return 0

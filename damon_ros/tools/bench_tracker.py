@@ -7,14 +7,17 @@ gives: the share of frames whose estimate contains the true object (dense surfac
 of every part inside it — the tracker's safety rule), the median volume excess (estimate
 volume / true volume - 1), the centre error (estimate centre vs the centre of the true
 object's enclosing box), the velocity error, and the tracker's CPU time per frame (one
-process, offline; CPU rather than wall time so that a loaded machine does not inflate it).
+process and one BLAS thread as in the node, offline; CPU rather than wall time so that a
+loaded machine does not inflate it).
 Frames whose detection is flagged partial (cut off or occluded) are counted apart: their
-bound covers only what is seen.
+bound covers only what is seen. ``--out`` writes every row as JSON lines for
+``damon-ros report --tracker``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections import defaultdict
@@ -100,21 +103,20 @@ def _moving(obstacle, t: float) -> bool:
     return bool(np.linalg.norm(obstacle.velocity_at(t)) > 0.0)
 
 
-def table(rows: list[dict]) -> str:
+def summarise(rows: list[dict]) -> tuple[list[dict], list[dict]]:
+    """Per (camera set, kind, motion), in the order the sets were given: frames, seen,
+    partial, the share contained (of the whole views), excess, centre and velocity errors,
+    the estimates made; and per camera set the CPU time per frame per camera (p50, p95)."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in rows:
         groups[(r["set"], r["kind"], "moving" if r["moving"] else "static")].append(r)
-    header = (f"{'kind':<9} {'motion':<7} {'cams':>5} {'frames':>6} {'seen':>6} {'partial':>7} "
-              f"{'contained':>9} {'excess p50':>10} {'centre p50 mm':>13} {'centre p95 mm':>13} "
-              f"{'vel p50 m/s':>11} {'estimates':<22}")
-    lines = [header, "-" * len(header)]
     sets = list(dict.fromkeys(r["set"] for r in rows))  # in the order given
+    out = []
     for (camera_set, kind, motion), rs in sorted(groups.items(),
                                                  key=lambda kv: (sets.index(kv[0][0]), kv[0][1:])):
-        cameras = f"{sets.index(camera_set) + 1}:{rs[0]['cams']}"
         seen = [r for r in rs if r["seen"]]
         full = [r for r in seen if not r["partial"]]
-        kinds = defaultdict(int)
+        kinds: dict[str, int] = defaultdict(int)
         for r in seen:
             kinds[r["estimate"]] += 1
 
@@ -122,19 +124,39 @@ def table(rows: list[dict]) -> str:
             vals = [r[key] for r in rows]
             return scale * float(np.percentile(vals, q)) if vals else float("nan")
 
-        contained = np.mean([r["contained"] for r in full]) if full else float("nan")
+        out.append({
+            "set": sets.index(camera_set) + 1, "cameras": camera_set, "cams": rs[0]["cams"],
+            "kind": kind, "motion": motion, "frames": len(rs), "seen": len(seen),
+            "partial": len(seen) - len(full),
+            "contained_pct": 100 * float(np.mean([r["contained"] for r in full]))
+            if full else float("nan"),
+            "excess_pct": 100 * p("excess", 50), "centre_p50_mm": p("centre_m", 50, 1e3),
+            "centre_p95_mm": p("centre_m", 95, 1e3), "velocity_p50": p("velocity_mps", 50),
+            "estimates": ",".join(f"{k}:{n}" for k, n in sorted(kinds.items()))})
+    times = [{"set": i, "cameras": c,
+              "p50_ms": float(np.percentile([r["time_ms"] for r in rows if r["set"] == c], 50)),
+              "p95_ms": float(np.percentile([r["time_ms"] for r in rows if r["set"] == c], 95))}
+             for i, c in enumerate(sets, start=1)]
+    return out, times
+
+
+def table(rows: list[dict]) -> str:
+    groups, times = summarise(rows)
+    header = (f"{'kind':<9} {'motion':<7} {'cams':>5} {'frames':>6} {'seen':>6} {'partial':>7} "
+              f"{'contained':>9} {'excess p50':>10} {'centre p50 mm':>13} "
+              f"{'centre p95 mm':>13} {'vel p50 m/s':>11} {'estimates':<22}")
+    lines = [header, "-" * len(header)]
+    for g in groups:
         lines.append(
-            f"{kind:<9} {motion:<7} {cameras:>5} {len(rs):>6} {len(seen):>6} "
-            f"{len(seen) - len(full):>7} {100 * contained:>8.2f}% {100 * p('excess', 50):>9.0f}% "
-            f"{p('centre_m', 50, 1e3):>13.1f} {p('centre_m', 95, 1e3):>13.1f} "
-            f"{p('velocity_mps', 50):>11.3f} "
-            f"{','.join(f'{k}:{n}' for k, n in sorted(kinds.items())):<22}")
+            f"{g['kind']:<9} {g['motion']:<7} {g['set']}:{g['cams']:<3} {g['frames']:>6} "
+            f"{g['seen']:>6} {g['partial']:>7} {g['contained_pct']:>8.2f}% "
+            f"{g['excess_pct']:>9.0f}% {g['centre_p50_mm']:>13.1f} {g['centre_p95_mm']:>13.1f} "
+            f"{g['velocity_p50']:>11.3f} {g['estimates']:<22}")
     lines.append("")
-    for i, camera_set in enumerate(sets, start=1):
-        times = [r["time_ms"] for r in rows if r["set"] == camera_set]
-        lines.append(f"set {i} ({camera_set}): tracker CPU time per 640x480 frame per camera "
-                     f"(all obstacles, one process): p50 {np.percentile(times, 50):.2f} ms, "
-                     f"p95 {np.percentile(times, 95):.2f} ms")
+    for t in times:
+        lines.append(f"set {t['set']} ({t['cameras']}): tracker CPU time per 640x480 frame per "
+                     f"camera (all obstacles, one process): p50 {t['p50_ms']:.2f} ms, "
+                     f"p95 {t['p95_ms']:.2f} ms")
     return "\n".join(lines)
 
 
@@ -147,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=4.0, help="scenario time per scenario")
     parser.add_argument("--fps", type=float, default=15.0, help="frames per scenario second")
     parser.add_argument("--seed", type=int, default=0, help="render noise seed")
+    parser.add_argument("--out", default=None,
+                        help="also write every row as JSON lines (for damon-ros report)")
     parser.add_argument("--cameras", nargs="+", default=["camera.yaml"], metavar="FILES",
                         help="camera sets, each a comma-separated list of camera files (paths "
                              "or shipped names) fused together; e.g. camera.yaml "
@@ -168,7 +192,15 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"damon-ros bench-tracker: --cameras: {exc}", file=sys.stderr)
         return 2
+    from damon_ros.ros.environment import limit_threads
+
+    # one core, as the tracker node runs (`node_main`): BLAS worker threads busy-wait for
+    # work and their CPU time, counted by process_time, tripled some frames (F-001)
+    limit_threads()
     rows = [r for cameras in args.cameras
             for r in measure(scenarios, args.seconds, args.fps, args.seed, cameras)]
     print(table(rows))
+    if args.out:
+        with open(args.out, "w") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
     return 0

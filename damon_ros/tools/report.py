@@ -1,8 +1,10 @@
 """``damon-ros report``: docs/BENCHMARKS.md from benchmark result files.
 
 Every number in the page is computed here from the JSON lines that ``damon-ros bench``
-wrote, and the page names the command that produced each file, so anyone can regenerate
-it. Plots (T and re-plan latency distributions per planner) are written beside it.
+(and ``damon-ros bench-tracker --out``: the perception section) wrote, and the page names
+the command that produced each file, so anyone can regenerate it. Plots (T and re-plan
+latency distributions per planner) are written beside it. ``--tracker`` alone rewrites only
+the perception section, between its ``<!-- perception -->`` markers.
 """
 
 from __future__ import annotations
@@ -199,20 +201,6 @@ def stress_plot(runs: dict[str, list[dict]], out_dir: Path) -> Path:
     return path
 
 
-def write_section(page: Path, name: str, lines: list[str]) -> None:
-    """Put ``lines`` between ``<!-- name -->`` and ``<!-- /name -->`` in ``page`` (appended
-    the first time); the rest of the page is left as it is."""
-    mark = (f"<!-- {name} -->", f"<!-- /{name} -->")
-    text = page.read_text() if page.exists() else "# Benchmarks\n"
-    block = "\n".join([mark[0], *lines, mark[1]])
-    if mark[0] in text and mark[1] in text:
-        head, rest = text.split(mark[0], 1)
-        text = head + block + rest.split(mark[1], 1)[1]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    page.write_text(text)
-
-
 def stress_section(runs: dict[str, list[dict]], command: str, out_dir: Path) -> list[str]:
     figure = stress_plot(runs, out_dir)
     scenes = {r.get("scenario") for rs in runs.values() for r in rs}
@@ -220,6 +208,31 @@ def stress_section(runs: dict[str, list[dict]], command: str, out_dir: Path) -> 
             f"`{command}`", "", f"{len(scenes)} scenes; each labelled run is one "
             "`damon-ros bench --by-band` result file.", "", *stress_table(runs), "",
             f"![success vs speed]({figure.name})"]
+
+
+def perception_table(rows: list[dict]) -> list[str]:
+    """`damon-ros bench-tracker --out` rows: per camera set, shape kind and motion, the share of
+    whole-view frames whose estimate contains the true object, excess, errors and CPU time."""
+    from damon_ros.tools.bench_tracker import summarise
+
+    groups, times = summarise(rows)
+    lines = ["| cameras | kind | motion | frames | partial | contained | excess p50 | "
+             "centre p50 (mm) | centre p95 (mm) | velocity p50 (m/s) | estimates |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for g in groups:
+        lines.append(f"| {g['cameras']} | {g['kind']} | {g['motion']} | {g['frames']} | "
+                     f"{g['partial']} | {_fmt(g['contained_pct'])} % | "
+                     f"{_fmt(g['excess_pct'], 0)} % | {_fmt(g['centre_p50_mm'], 1)} | "
+                     f"{_fmt(g['centre_p95_mm'], 1)} | {_fmt(g['velocity_p50'], 3)} | "
+                     f"{g['estimates'].replace(',', ', ')} |")
+    lines.append("\nContained: the share of frames, of those whose detection is not flagged "
+                 "partial (cut off or occluded: that bound covers only what is seen), in which "
+                 "every surface sample of the true object (8 mm apart) lies in the estimate. "
+                 "Excess: estimate volume / true volume - 1. Tracker CPU time "
+                 "per 640x480 frame per camera (one process, offline): " + "; ".join(
+                     f"{t['cameras']} p50 {t['p50_ms']:.2f} ms, p95 {t['p95_ms']:.2f} ms"
+                     for t in times) + ".")
+    return lines
 
 
 def plots(records: list[dict], out_dir: Path) -> list[Path]:
@@ -253,7 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="damon-ros report",
                                      description="Write docs/BENCHMARKS.md from bench results.")
     parser.add_argument("--results", default=None,
-                        help="public-scenario results (JSON lines): the whole page anew")
+                        help="public-scenario results (JSON lines): the whole page anew; "
+                             "without it only the sections of --stress and --tracker are "
+                             "rewritten")
     parser.add_argument("--results-command", default="",
                         help="the command that produced --results (quoted in the page)")
     parser.add_argument("--stress", action="append", default=[], metavar="LABEL=FILE",
@@ -264,25 +279,41 @@ def main(argv: list[str] | None = None) -> int:
                         help="the commands that produced --stress (quoted in the page)")
     parser.add_argument("--mbm", default=None, help="MotionBenchMaker results (JSON lines)")
     parser.add_argument("--mbm-command", default="", help="the command that produced --mbm")
+    parser.add_argument("--tracker", action="append", default=[],
+                        help="damon-ros bench-tracker --out results (JSON lines); repeatable")
+    parser.add_argument("--tracker-command", action="append", default=[],
+                        help="the command that produced each --tracker file, in order")
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
     args = parser.parse_args(argv)
-    if args.results is None and not args.stress:
-        parser.error("give --results (the whole page) or --stress (its stress section)")
+    if len(args.tracker_command) != len(args.tracker):
+        parser.error("give one --tracker-command for each --tracker file")
+    if not args.results and not args.tracker and not args.stress:
+        parser.error("give --results (the whole page), --stress or --tracker (their sections)")
     if args.results and not args.results_command:
-        parser.error("--results needs --results-command (the page quotes it)")
+        parser.error("--results needs --results-command")
+    runs = {}
+    for item in args.stress:
+        label, sep, path = item.partition("=")
+        if not sep or not label or not path:
+            parser.error(f"--stress {item!r}: expected LABEL=FILE")
+        runs[label] = load(path)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if args.stress:
-        runs = {}
-        for item in args.stress:
-            label, sep, path = item.partition("=")
-            if not sep or not label or not path:
-                parser.error(f"--stress {item!r}: expected LABEL=FILE")
-            runs[label] = load(path)
-        write_section(out, "stress", stress_section(runs, args.stress_command, out.parent))
-        print(f"stress section written to {out}")
-    if args.results is None:
-        return 0
+    if args.results:
+        write_page(args, out)
+    if runs:
+        write_marked(out, "stress", stress_section(runs, args.stress_command, out.parent))
+    if args.tracker:
+        section = ["## Perception against ground truth (the tracker, frame by frame)", ""]
+        for path, command in zip(args.tracker, args.tracker_command, strict=True):
+            section += [f"`{command}`", "", *perception_table(load(path)), ""]
+        write_marked(out, "perception", section)
+    print(f"wrote {out}")
+    return 0
+
+
+def write_page(args: argparse.Namespace, out: Path) -> None:
+    """The page from ``--results`` (and ``--mbm``); marked sections of the old page kept."""
     records = load(args.results)
     figures = plots(records, out.parent)
     lines = ["# Benchmarks", "",
@@ -300,8 +331,20 @@ def main(argv: list[str] | None = None) -> int:
                   f"Published reference: {PUBLISHED_MBM}", ""]
     kept = _marked_sections(out.read_text()) if out.exists() else []
     out.write_text("\n".join(lines + kept) + "\n")
-    print(f"wrote {out}")
-    return 0
+
+
+def write_marked(page: Path, name: str, lines: list[str]) -> None:
+    """Put ``lines`` between the ``<!-- name -->`` markers of ``page`` (appended the first
+    time); `main` carries such sections over when it writes the page anew."""
+    text = page.read_text() if page.exists() else "# Benchmarks\n"
+    mark = (f"<!-- {name} -->", f"<!-- /{name} -->")
+    block = "\n".join([mark[0], *lines, mark[1]])
+    if mark[0] in text and mark[1] in text:
+        head, rest = text.split(mark[0], 1)
+        text = head + block + rest.split(mark[1], 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    page.write_text(text)
 
 
 def _marked_sections(text: str) -> list[str]:

@@ -203,8 +203,9 @@ def test_every_public_obstacle_is_bounded_unless_flagged_partial(mode):
                     partial += 1
                     continue
                 assert _contains(d.shape, shape), (scenario.name, t, color, mode)
-    # E-001/E-002's low yellow box stands behind the red one: seen in part, and flagged.
-    assert 4 <= partial <= 12
+    # E-001/E-002's low yellow box stands behind the red one: seen in part, and flagged;
+    # C-001/C-002's ball is sunk into the box's top: at the seam either may hide the other.
+    assert 4 <= partial <= 16
 
 
 def test_an_occluded_blob_is_flagged_and_a_free_one_is_not():

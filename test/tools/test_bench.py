@@ -162,3 +162,23 @@ def test_the_plan_once_ablation_runs_the_closed_loop(tmp_path):
     (record,) = map(json.loads, out.read_text().splitlines())
     assert record["planner"] == "damon-noreplan" and "run failed" not in str(record["error"])
     assert record["replans"] == 0
+
+
+def test_bench_tracker_rows_feed_the_reports_perception_section(tmp_path, capsys):
+    from damon_ros.tools.bench_tracker import main as bench_tracker
+    from damon_ros.tools.report import main as report
+
+    rows = tmp_path / "tracker.jsonl"
+    assert bench_tracker(["--scenarios", str(public_scenarios_dir() / "B-001.yaml"),
+                          "--seconds", "0.2", "--fps", "10", "--out", str(rows)]) == 0
+    assert {r["kind"] for r in map(json.loads, rows.read_text().splitlines())} == {"sphere"}
+    page = tmp_path / "BENCHMARKS.md"
+    page.write_text("# Benchmarks\n\n## Planners\n\nkept\n")
+    for _ in range(2):  # a second run replaces the section, it does not add one
+        assert report(["--tracker", str(rows), "--tracker-command", "bench-tracker B",
+                       "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "kept" in text and text.count("## Perception against ground truth") == 1
+    assert "`bench-tracker B`" in text
+    line = next(x for x in text.splitlines() if x.startswith("| camera.yaml | sphere |"))
+    assert "| 100.00 % |" in line
