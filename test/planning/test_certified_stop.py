@@ -233,61 +233,48 @@ def test_an_arm_resting_on_its_goal_gets_out_of_a_movers_way_and_returns(planner
 
 
 class _NoRoute(GraphPlanner):
-    """The shipped planner with every re-route failing: what is left is stop, evade or
-    follow on."""
+    """The shipped planner with no route and no escape to be found: what is left is to
+    stop or to follow on."""
 
     def replan(self, q_now, obstacles=(), qd_now=None):
         from damon_ros.planning.graph_planner import PlanResult
 
         return PlanResult(False, "no route (test)")
 
+    def escape(self, q_now, obstacles, candidates=96, rng=None, qd_now=None):
+        from damon_ros.planning.graph_planner import PlanResult
 
-def test_without_a_route_the_arm_follows_on_only_while_that_keeps_clear_of_movers(planner,
-                                                                                  fast):
-    """A ball falls past the hand's way at the middle of the running trajectory: nearer
-    than λ allows, the trajectory is threatened; with no route, an arm whose trajectory
-    still keeps clear of the ball's predicted region with margin 0 follows on (no stop
-    sent: a brake there is what met a diving ball in generated scenes). A ball on the path
-    itself stops it as before."""
+        return PlanResult(False, "no escape (test)")
+
+
+def test_without_a_route_the_arm_follows_on_when_braking_would_meet_the_mover(planner, fast):
+    """The arm at speed, a ball coming up behind the hand along its way: nothing is
+    certified any more, and braking here would let the ball catch the hand, while the
+    hand, followed on, keeps ahead of it. No stop is sent; the arm follows on. A ball
+    waiting where the hand is going makes braking the better choice: the stop goes out."""
     blocked = _NoRoute(planner.graph, fast, planner.limits, planner.config)
     blocked.warm_up()
     q0, q1 = _long_move()
-    zero = np.zeros(7)
-
-    def fresh():
-        stops = []
-        runtime = ReactivePlanner(blocked, RuntimeConfig(), on_threat=stops.append)
-        assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
-        return runtime, stops
-
-    runtime, _ = fresh()
+    stops: list[str] = []
+    runtime = ReactivePlanner(blocked, RuntimeConfig(), on_threat=stops.append)
+    assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
     tr = runtime.trajectory
-    t_mid = 0.5 * tr.duration
-    mid_q = tr.sample(t_mid)[0]
-    hand, _ = fast.tcp_pose(mid_q)
-    out = np.array([hand[0], hand[1], 0.0]) / np.linalg.norm(hand[:2])
-    v = np.array([0.0, 0.0, -0.6])  # falling past the hand's way, outside it
-
-    def ball(gap):  # level with the hand at the middle of the trajectory, ``gap`` beyond
-        centre = hand + out * (0.05 + gap) - v * (t_mid + AGE)
-        return [(Shape("sphere", (0.05,), centre, name="ball"), v)]
-
-    def scene(gap):
-        return runtime.scene(ball(gap), AGE)
-
-    threatened = clear = None
-    for gap in np.arange(0.0, 0.3, 0.001):  # the gaps where λ is lost but 0 is kept
-        threatened = blocked.trajectory_threatened(q0, tr.positions[1:], tr.times,
-                                                   tr.positions, scene(gap))[0]
-        clear = blocked.keeps_clear(q0, tr.positions[1:], tr.times, tr.positions, scene(gap))
-        if threatened and clear:
-            break
-    assert threatened and clear, "no gap with λ lost and margin 0 kept"
-    runtime, stops = fresh()
-    assert runtime.update(0.0, q0, ball(gap), qd_now=zero) is None
+    t_k = 0.4 * tr.duration  # cruising
+    q_k, qd_k = tr.sample(t_k)[:2]
+    hand, _ = fast.tcp_pose(q_k)
+    ahead, _ = fast.tcp_pose(tr.sample(t_k + 0.01)[0])
+    along = (ahead - hand) / np.linalg.norm(ahead - hand)
+    behind = 0.6 * along  # from behind, slower than the hand: it reaches the hand's place
+    chaser = [(Shape("sphere", (0.05,), hand - behind * (AGE + 0.35), name="ball"), behind)]
+    now = runtime._t_start + t_k
+    assert runtime.update(now, q_k, chaser, perception_age_s=AGE, qd_now=qd_k) is None
     assert stops == [] and runtime.stats.followed_on == 1 and runtime.state == "executing"
-    runtime, stops = fresh()
-    assert not blocked.keeps_clear(q0, tr.positions[1:], tr.times, tr.positions, scene(-0.06))
-    event = runtime.update(0.0, q0, ball(-0.06), qd_now=zero)
-    assert stops and event is not None and event.kind in ("hold", "trajectory")
+    # the same ball waiting where the hand will be in 0.35 s
+    runtime = ReactivePlanner(blocked, RuntimeConfig(), on_threat=stops.append)
+    assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
+    later, _ = fast.tcp_pose(tr.sample(t_k + 0.35)[0])
+    waiting = [(Shape("sphere", (0.05,), later + 0.06 * along, name="ball"), -0.1 * along)]
+    now = runtime._t_start + t_k
+    event = runtime.update(now, q_k, waiting, perception_age_s=AGE, qd_now=qd_k)
+    assert stops and event is not None and event.kind == "hold"
     assert runtime.stats.followed_on == 0
