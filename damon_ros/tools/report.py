@@ -188,7 +188,8 @@ def stress_plot(runs: dict[str, list[dict]], out_dir: Path) -> Path:
                 rs = groups.get((band, planner), {}).get(label, [])
                 rates.append(100 * np.mean([bool(r.get("success")) for r in rs]) if rs
                              else np.nan)
-            ax.plot(bands, rates, marker="o", label=f"{planner}, {label}")
+            if not np.all(np.isnan(rates)):  # a planner not run with this label
+                ax.plot(bands, rates, marker="o", label=f"{planner}, {label}")
     ax.axhline(PAPER_SUCCESS["dynamic"], color="grey", linestyle="--",
                label=f"paper, dynamic ({PAPER_SUCCESS['dynamic']} %)")
     ax.set(xlabel="mover speed band", ylabel="success (%)",
