@@ -310,7 +310,7 @@ class ReactivePlanner:
         """A certified escape move as a trajectory event, or None when there is none. An
         arm still braking (a hold just sent) escapes from where its brake ends, the brake
         first: planned as if at rest, the move asked a moving arm to start from rest
-        where it was (a sphere touched an arm that escaped that way, G-s1202-064)."""
+        where it was."""
         t0 = time.perf_counter()
         result = self.planner.escape(q_now, shapes, qd_now=qd_now)
         if not result.success:
@@ -325,8 +325,8 @@ class ReactivePlanner:
         predicted region reaches it within the rest horizon (`GraphPlanner.rest_contact`),
         a certified escape move, after which it holds and returns to the goal once a
         route is certified again. Only movers count here: a goal may lie millimetres from
-        a static object (a grasp), which is no reason to leave it. In generated scenes a
-        sphere diving onto the arm resting at its goal touched it (G family, 3 of 380)."""
+        a static object (a grasp), which is no reason to leave it. In generated G scenes a
+        sphere diving onto an arm resting at its goal touched it."""
         if not shapes.moving or self.planner.rest_contact(q_now, None, shapes) is None:
             return None
         return self._escape(q_now, shapes, "a mover is predicted to reach the arm at its "
@@ -334,9 +334,11 @@ class ReactivePlanner:
 
     def _reroute(self, q_now: np.ndarray, shapes: Scene, why: str,
                  qd_now: np.ndarray | None = None, follow_on: bool = False) -> Event | None:
-        """A certified route from here; failing that: follow on when ``follow_on`` (the
-        running trajectory keeps clear of the movers with margin 0), else evade or hold.
-        On the stress bench the brake was what met a mover that had been at rest."""
+        """A certified route from here; failing that, with ``follow_on`` (following the
+        running trajectory on keeps more nominal clearance from the movers than braking,
+        `GraphPlanner.follow_on_safer`; no stop was sent) a certified escape, else on along
+        the way; without it, evade or hold. On the stress bench the brake was what met a
+        mover that had been at rest."""
         t0 = time.perf_counter()
         result = self.planner.replan(q_now, shapes, qd_now=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
@@ -347,6 +349,8 @@ class ReactivePlanner:
                 escape = self._escape(q_now, shapes, f"{why}; {result.reason}; ", qd_now)
                 if escape is None:
                     self.stats.followed_on += 1
+                else:
+                    escape.latency_ms += latency
                 return escape
             evade = self._evade(q_now, shapes, qd_now)
             if evade is not None:
