@@ -258,7 +258,7 @@ class PlannerNode(Node):
         with self.lock:
             if self.q is None or clock_seconds(self) - self.q_stamp > self.joint_state_timeout:
                 return None, None
-            self._decided_from = self.q_measured_at  # a trajectory from it: `_start_stamp`
+            self._decided_from = self.q_measured_at  # a trajectory from it: `_publish_trajectory`
             return self.q.copy(), None if self.qd is None else self.qd.copy()
 
     def _perception(self) -> tuple[list, float]:

@@ -1140,7 +1140,6 @@ class GraphPlanner:
                 return True, f"p(collision) at the current state is {p:.2f}"
         return False, ""
 
-
     def _nearest_name(self, a: np.ndarray, b: np.ndarray, obstacles: Sequence[Shape]) -> str:
         """The name of the obstacle nearest the segment ``a``-``b`` (states at the planner's
         resolution), so that a log says what blocked the path (the box's jitter, a mover)."""

@@ -371,14 +371,8 @@ class ReactivePlanner:
         where the arm brakes to (None when there is none: stopping is then the best left)."""
         if not shapes.moving or self.planner.rest_contact(q_now, qd_now, shapes) is None:
             return None
-        t0 = time.perf_counter()
-        result = self.planner.escape(q_now, shapes, qd_now=qd_now)
-        if not result.success:
-            return None
-        self.stats.escapes += 1
-        event = self._execute(result, 1e3 * (time.perf_counter() - t0))
-        event.reason = "a mover's prediction reaches where the arm would stop; " + result.reason
-        return event
+        return self._escape(q_now, shapes, "a mover's prediction reaches where the arm would "
+                            "stop; ", qd_now)
 
     def _stalled(self, t: float, q_now: np.ndarray) -> bool:
         """No motion for ``stall_time_s`` while executing and away from the path's end."""
