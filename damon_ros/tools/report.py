@@ -3,8 +3,9 @@
 Every number in the page is computed here from the JSON lines that ``damon-ros bench``
 (and ``damon-ros bench-tracker --out``: the perception section) wrote, and the page names
 the command that produced each file, so anyone can regenerate it. Plots (T and re-plan
-latency distributions per planner) are written beside it. ``--tracker`` alone rewrites only
-the perception section, between its ``<!-- perception -->`` markers.
+latency distributions per planner) are written beside it. Without ``--results``,
+``--tracker`` and ``--stress`` rewrite only their own sections, between their
+``<!-- perception -->`` / ``<!-- stress -->`` markers.
 """
 
 from __future__ import annotations
