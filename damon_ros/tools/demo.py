@@ -27,6 +27,7 @@ import numpy as np
 
 from damon_ros.ros import topics
 from damon_ros.ros.environment import node_environment, ros_environment
+from damon_ros.ros.stamps import stamp_seconds
 from damon_ros.tools.soak_monitor import cpu_seconds, cpu_shares, planner_has_state
 
 DEFAULT_SCENARIO = "D-001.yaml"  # a public dynamic scenario: a static box, a sweeping sphere
@@ -241,8 +242,7 @@ def _watch(scenario, ready_by: float, procs: dict, out: Path, args) -> dict:
         t = time.time() - clock["start"]
         rec.trajectories.append((t, points))
         if rec.first_plan is None and len(points) and math.isfinite(t):
-            times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
-                              for p in msg.points])
+            times = np.array([stamp_seconds(p.time_from_start) for p in msg.points])
             rec.first_plan = (t, times, points)
 
     node.create_subscription(JointState, topics.JOINT_STATES, on_joints, 10)
