@@ -7,14 +7,33 @@ becomes *still* once its speed has stayed below ``static_speed_mps`` for ``stati
 and then reports zero velocity, until its speed exceeds the (higher) ``moving_speed_mps`` or
 its centre leaves the position it was still at by ``moving_shift_m``: two thresholds, so
 noise near one of them does not toggle the state every frame, and a slow start is still
-caught by the shift test.
+caught by the shift test. The still position (the anchor) is the mean of the centres over
+the hold, not one noisy centre, and it is never moved while the track stays still.
+
+An occluded view is no evidence of motion (:meth:`Stationarity.cut_in_place`): when the arm
+or a passing ball hides part of a still box, the visible part's centre moves by centimetres
+(and a cut-off blob gets another kind of bound), which read as motion made the planner
+sweep the box and hold. A view that shows less of the object than its whole views do
+(flagged partial, or fewer pixels than they had) and whose points all lie in the last whole
+bound grown by ``moving_shift_m`` is what an occluder left of an object in place; its centre
+is kept out of the velocity and the stationarity test. A moving object leaves that bound
+within ``moving_shift_m`` of motion, so it is still seen to move, a few frames late at most.
 """
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
+from damon_ros.core.shapes import Shape, contains
 from damon_ros.perception.tracker_config import TrackerConfig
+
+SHRUNK_SHARE = 0.8
+"""A view with fewer pixels than this share of the whole views' typical count shows only
+part of the object (a still box's pixel count varies by a few per cent from frame to frame)."""
+AREA_HISTORY = 15
+"""The typical pixel count is the median of this many last whole views."""
 
 
 class Stationarity:
@@ -25,6 +44,27 @@ class Stationarity:
         self.still = False
         self.anchor: np.ndarray | None = None
         self._slow_since: float | None = None
+        self._slow: list[np.ndarray] = []  # the centres since _slow_since
+        self.whole: Shape | None = None  # the last bound of a whole view
+        self._areas: deque[int] = deque(maxlen=AREA_HISTORY)
+
+    def cut_in_place(self, shape: Shape, partial: bool, area_px: int,
+                     surface: np.ndarray | None) -> bool:
+        """Whether a view shows less of the object than its whole views (flagged partial, or
+        under `SHRUNK_SHARE` of their pixels) and all it shows (``surface``, base-frame
+        points) lies in the last whole bound grown by ``moving_shift_m``: part of an object
+        in place, hidden by an occluder. Any other view is remembered as whole (its bound
+        ``shape`` and its pixel count, which sets what "fewer" means)."""
+        typical = float(np.median(self._areas)) if self._areas else 0.0
+        cut = partial or (area_px > 0 and area_px < SHRUNK_SHARE * typical)
+        if not cut:
+            self.whole = shape
+            if area_px > 0:
+                self._areas.append(area_px)
+            return False
+        if self.whole is None or surface is None or not len(surface):
+            return False
+        return bool(np.all(contains(self.whole, surface, self.config.moving_shift_m)))
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """Take one observation; the velocity to report (zero while still)."""
@@ -33,14 +73,17 @@ class Stationarity:
         if self.still:
             if speed > c.moving_speed_mps or float(
                     np.linalg.norm(position - self.anchor)) > c.moving_shift_m:
-                self.still, self._slow_since = False, None
+                self.still, self._slow_since, self._slow = False, None, []
             else:
                 return np.zeros(3)
         if speed < c.static_speed_mps:
-            self._slow_since = stamp if self._slow_since is None else self._slow_since
+            if self._slow_since is None:
+                self._slow_since, self._slow = stamp, []
+            self._slow.append(np.array(position, dtype=float))
             if stamp - self._slow_since >= c.static_hold_s:
-                self.still, self.anchor = True, np.array(position, dtype=float)
+                self.still, self.anchor = True, np.mean(self._slow, axis=0)
+                self._slow = []
                 return np.zeros(3)
         else:
-            self._slow_since = None
+            self._slow_since, self._slow = None, []
         return velocity

@@ -179,7 +179,9 @@ class _TrackState:
         """Take a detection; velocity = least-squares slope of centres over the window.
 
         With a single centre in the window (a new track, or one unseen for longer than the
-        window) the previous velocity is kept.
+        window) the previous velocity is kept; so it is when the view is only what an
+        occluder left visible of the object in place (`Stationarity.cut_in_place`): its
+        centre is no evidence of motion.
         """
         shape = detection.shape
         self.shape = shape
@@ -187,6 +189,9 @@ class _TrackState:
         self.seen = detection.seen
         self.last_seen = stamp
         self.hits += 1
+        if self.stillness.cut_in_place(shape, detection.partial, detection.area_px,
+                                       detection.surface):
+            return
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:
             self.velocity = self.stillness.update(stamp, shape.position, velocity)
@@ -303,9 +308,13 @@ class Tracker:
             seen = [[d.surface for d in view] for view in mine]
             for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
                                                 seen, self.config.face_tolerance_m):
-                seen = _union([mine[v][i].seen for v, i in members], color)
-                out.append(Detection(color, shape, shape.kind == "sphere", partial, 0, 0,
-                                     seen))
+                parts = [mine[v][i] for v, i in members]
+                surfaces = [d.surface for d in parts if d.surface is not None]
+                out.append(Detection(color, shape, shape.kind == "sphere", partial,
+                                     sum(d.points for d in parts),
+                                     sum(d.area_px for d in parts),
+                                     _union([d.seen for d in parts], color),
+                                     np.vstack(surfaces) if surfaces else None))
         return out
 
     def _track(self, stamp_s: float) -> list[Track]:

@@ -241,6 +241,62 @@ def test_a_still_box_has_zero_velocity_and_a_moved_one_moves_again():
     assert moving and all(v > 0.15 for v in moving)  # truth: 0.3 m/s
 
 
+def _red_box_behind_a_ball(box_motion: dict | None, ball_waypoints: list) -> list:
+    """A red box, and a green ball between it and the camera (at x 2.5) that hides part
+    of it: the box's view is then flagged partial and its visible centre shifts."""
+    box = {"name": "b", "shape": "box", "size": [0.1, 0.2, 0.2], "color": "red",
+           "pose": {"position": [0.5, 0.0, 0.35], "orientation": [0, 0, 0.1, 0.995]}}
+    if box_motion is not None:
+        box["motion"] = box_motion
+    ball = {"name": "s", "shape": "sphere", "size": [0.06], "color": "green",
+            "pose": {"position": ball_waypoints[0][1:], "orientation": [0, 0, 0, 1]},
+            "motion": {"type": "waypoints", "waypoints": ball_waypoints}}
+    return _scenario("A-001", box, ball, drop=True)
+
+
+def _red_track(scenario, times, seed: int):
+    """Per stamp: the red track's speed and whether its detection was partial."""
+    tracker = Tracker(CAMERA, CONFIG)
+    rng = np.random.default_rng(seed)
+    out = {}
+    for t in times:
+        rgb, depth = render(CAMERA, scene_at(scenario, t), 0.002, 0.01, rng)
+        tracks = tracker.update(rgb, depth, t)
+        (red,) = [tr for tr in tracks if tr.color == "red"]
+        out[round(float(t), 3)] = (float(np.linalg.norm(red.velocity)), red.partial)
+    return out
+
+
+def test_a_still_box_partly_hidden_by_a_passing_ball_keeps_zero_velocity():
+    """A ball crossing in front of a still box hides part of it for many frames (as the arm
+    does in the demo): the visible part's centre shifts by centimetres, which read as
+    motion swept the box; what is visible stays inside the last whole bound, so it is no
+    evidence of motion and the box keeps exactly zero velocity."""
+    scenario = _red_box_behind_a_ball(None, [[0.0, 0.9, -0.45, 0.45], [0.8, 0.9, -0.45, 0.45],
+                                             [2.6, 0.9, 0.45, 0.45]])
+    seen = _red_track(scenario, np.arange(0.0, 2.6, 1 / 30), seed=5)
+    after = {t: v for t, v in seen.items() if t >= CONFIG.static_hold_s + 0.4}
+    assert sum(partial for _, partial in after.values()) >= 10  # the ball did hide it
+    assert all(speed == 0.0 for speed, _ in after.values())
+
+
+def test_a_box_moving_off_while_partly_hidden_is_seen_to_move_within_a_few_frames():
+    """The same ball rests in front of the box's left side; the box, still until 1.5 s,
+    then moves right at 0.3 m/s: leaving its last whole bound is evidence of motion even
+    in a cut-off view, so it is moving within 0.3 s (the velocity window)."""
+    box_motion = {"type": "waypoints", "waypoints": [[0.0, 0.5, 0.0, 0.35],
+                                                    [1.5, 0.5, 0.0, 0.35],
+                                                    [3.0, 0.5, 0.45, 0.35]]}
+    scenario = _red_box_behind_a_ball(box_motion, [[0.0, 0.9, -0.07, 0.45],
+                                                   [3.0, 0.9, -0.07, 0.45]])
+    seen = _red_track(scenario, np.arange(0.0, 2.4, 1 / 30), seed=6)
+    still = [v for t, (v, _) in seen.items() if CONFIG.static_hold_s + 0.4 <= t <= 1.5]
+    assert still and all(v == 0.0 for v in still)
+    moving = [v for t, (v, _) in seen.items() if t >= 1.5 + 0.3]
+    assert sum(p for t, (_, p) in seen.items() if t >= 1.5) >= 3  # moving while cut off
+    assert moving and all(v > 0.1 for v in moving), moving  # truth: 0.3 m/s
+
+
 # --- several cameras --------------------------------------------------------------------------
 
 
