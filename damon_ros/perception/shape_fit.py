@@ -142,9 +142,16 @@ def _is_round(config: TrackerConfig, radius: float, rms: float, width: float,
     )
 
 
+SPHERE_SIGMAS = 2.5
+"""A fitted sphere (``shape: auto``) is grown by this many fit residuals (rms): the fit of a
+cap of hundreds of points places the surface far better than one residual, and what the
+residual does not cover (quantised depth, a rougher cap) it grows with."""
+
+
 def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: float,
-               config: TrackerConfig) -> tuple[np.ndarray, float] | None:
-    """Centre and radius (reaching every point) of the blob's sphere, or None if not round.
+               config: TrackerConfig) -> tuple[np.ndarray, float, float] | None:
+    """Centre, radius (reaching every point) and safety margin of the blob's sphere, or None
+    if not round.
 
     ``points`` are N x 3 in the optical frame, ``local`` the same as 3 x N view coordinates.
     """
@@ -160,9 +167,10 @@ def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: 
         return None
     if config.shape == "auto":
         # The fit, not the noisy points, says where the surface is: the farthest point
-        # reaches ~3.5 noise sigmas past it, which adds a third to a small ball's volume.
-        return centre, radius
-    return centre, max(radius, _reach(local, basis.T @ centre))
+        # reaches ~3.5 noise sigmas past it, which adds a third to a small ball's volume;
+        # so did a fixed 5 mm inflation (the rms is ~1.5 mm of 2 mm depth noise)
+        return centre, radius, max(SPHERE_SIGMAS * rms, config.surface_margin_m)
+    return centre, max(radius, _reach(local, basis.T @ centre)), config.inflation_m
 
 
 def _reach(local: np.ndarray, centre: np.ndarray) -> float:
@@ -175,7 +183,8 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
                    name: str = "", partial: bool = False) -> Estimate:
     """Conservative bounding shape (base frame) of an obstacle seen as optical-frame points.
 
-    Round blobs: the fitted sphere, radius ``max(fit, farthest point) + inflation``. Others:
+    Round blobs: the fitted sphere, radius ``max(fit, farthest point) + inflation`` (``auto``:
+    the fit's radius plus `SPHERE_SIGMAS` residuals). Others:
     each visible point is extended along its ray by the largest visible width (the hidden
     depth of a compact obstacle is at most that), and the bound covers both ends: a sphere
     about the middle of that cloud, or the box of it in the view-aligned frame.
@@ -189,7 +198,7 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
     R, t = camera.rotation, camera.position
     fit = _round_fit(points, local, basis, width, config)
     if fit is not None:
-        centre, radius = R @ fit[0] + t, fit[1] + inflate
+        centre, radius = R @ fit[0] + t, fit[1] + fit[2]
         if config.shape == "box":
             return Estimate(Shape("box", (2 * radius,) * 3, centre, name=name), True)
         return Estimate(Shape("sphere", (radius,), centre, name=name), True)

@@ -157,8 +157,8 @@ def test_sphere_at_one_metre_is_recovered_within_a_centimetre_and_contained(nois
         assert np.linalg.norm(found.shape.position - true.position) < 0.01
         assert _contains(found.shape, true)
         radius = found.shape.size[0]
-        assert true.size[0] + CONFIG.inflation_m - 0.002 < radius  # the margin is applied
-        assert radius < true.size[0] + CONFIG.inflation_m + 0.015  # and nothing bloats it
+        # the margin is the fit's residuals (mm depth quantisation alone: under a mm)
+        assert true.size[0] < radius < true.size[0] + 3.0 * noise + 0.003  # nothing bloats it
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.002])
