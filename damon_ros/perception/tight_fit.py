@@ -27,6 +27,7 @@ sample spacing on the image plane, stretched by the obliquity of the face it is 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import cv2
@@ -122,6 +123,16 @@ def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
 def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
             name: str = "") -> BoxFit | None:
     """The upright box of base-frame ``points`` (N x 3), or None when they are no box."""
+    return fit_box_seen([(camera, points)], config, name)
+
+
+def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConfig,
+                 name: str = "") -> BoxFit | None:
+    """The upright box of the base-frame points several cameras saw of one object at one
+    instant (``views``: each camera and its points), or None when they are no box. A face
+    is visible when it has points and some camera faces it; each point's ray is its own
+    camera's, the sample spacing the coarsest camera's."""
+    points = np.vstack([p for _, p in views])
     if len(points) < config.min_points:
         return None
     xy = np.ascontiguousarray(points[:, :2], dtype=np.float32)
@@ -143,22 +154,16 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     on_face = (near_low | near_high).any(axis=1)
     if on_face.mean() < BOX_SHARE:
         return None
-    eye = camera.position @ axes
     need = max(8, int(FACE_SHARE * len(points)))
-    # visible[k, 0] / [k, 1]: the face at low / high of axis k faces the camera (by more than
+    # visible[k, 0] / [k, 1]: the face at low / high of axis k faces a camera (by more than
     # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
-    reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
-    visible = np.array([[near_low[:, k].sum() >= need and eye[k] < low[k] - reach,
-                         near_high[:, k].sum() >= need and eye[k] > high[k] + reach]
-                        for k in range(3)])
+    owner = np.repeat(np.arange(len(views)), [len(p) for _, p in views])
+    per_view = [_BoxView(camera, axes, owner == v, local, near_low, near_high, low, high,
+                         config) for v, (camera, _) in enumerate(views)]
+    visible = np.logical_or.reduce([w.facing for w in per_view]) & np.column_stack(
+        [near_low.sum(axis=0) >= need, near_high.sum(axis=0) >= need])
     if not visible.any() or _tilted(local, near_low, near_high, visible):
         return None
-    # the sample spacing where it is largest: at the farthest point
-    delta = spacing_m(camera, config, float(np.max((points - camera.position)
-                                                   @ camera.rotation[:, 2])))
-    rays = points - camera.position
-    rays /= np.sqrt((rays * rays).sum(axis=1))[:, None]
-    cosines = np.abs(rays @ axes)  # per point: how squarely each axis's faces are seen
     margin_face = config.surface_margin_m
     seen, hidden = [], []
     # a visible face is its fitted plane, not its farthest noisy point (~3 sigma of depth
@@ -174,12 +179,13 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
             # sample (a 4x cap left the far 3-4 cm of a top face seen from the side out),
             # with the obliquity of the rays there: at a far edge the face is seen more
             # grazingly than on average (the last samples along the axis, 5 % and 3)
+            # (several cameras: each one's silhouette bounds the object, the tightest holds)
             if not visible[k, 0]:
-                lo[k] -= _edge(cosines, local[:, k], others, delta, -1) + margin_face
+                lo[k] = _silhouette(per_view, local[:, k], k, -1, others) - margin_face
             else:
                 lo[k] -= margin_face
             if not visible[k, 1]:
-                hi[k] += _edge(cosines, local[:, k], others, delta, 1) + margin_face
+                hi[k] = _silhouette(per_view, local[:, k], k, 1, others) + margin_face
             else:
                 hi[k] += margin_face
             seen.append(True)
@@ -207,6 +213,53 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+class _BoxView:
+    """What one camera shows of a box fit: its points (``mask`` of the union), the faces
+    it faces and has points on (``visible``), its sample spacing at its farthest point
+    and how squarely its rays meet each axis's faces (``cosines``)."""
+
+    def __init__(self, camera: Camera, axes: np.ndarray, mask: np.ndarray, local: np.ndarray,
+                 near_low: np.ndarray, near_high: np.ndarray, low: np.ndarray,
+                 high: np.ndarray, config: TrackerConfig) -> None:
+        self.mask = mask
+        eye = camera.position @ axes
+        reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
+        self.facing = np.column_stack([eye < low - reach, eye > high + reach])
+        need = max(8, int(FACE_SHARE * np.count_nonzero(mask)))
+        self.visible = self.facing & np.column_stack(
+            [near_low[mask].sum(axis=0) >= need, near_high[mask].sum(axis=0) >= need])
+        points = local[mask] @ axes.T
+        self.delta = spacing_m(camera, config, float(np.max((points - camera.position)
+                                                            @ camera.rotation[:, 2])))
+        rays = points - camera.position
+        rays /= np.sqrt((rays * rays).sum(axis=1))[:, None]
+        self.cosines = np.abs(rays @ axes)
+
+
+def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
+                others: list[int]) -> float:
+    """Where the box ends at the ``sign`` end of axis ``k`` when no face there is seen: a
+    sample spacing (`_edge`) beyond the last point of a camera that sees a face spanning
+    the axis, the tightest of these cameras (each silhouette bounds the object), never
+    inside a point any camera saw."""
+    extreme = float(np.max(sign * along))
+    bounds = []
+    for w in views:
+        spans = [j for j in range(3) if j != k and w.visible[j].any()]
+        if spans and np.any(w.mask):
+            mine = along[w.mask]
+            bounds.append(float(np.max(sign * mine))
+                          + _edge(w.cosines, mine, spans, w.delta, sign))
+    if not bounds:  # no single camera saw a spanning face: all of them together did
+        both = np.vstack([w.cosines for w in views])
+        order = np.concatenate([np.flatnonzero(w.mask) for w in views])
+        cosines = np.empty_like(both)
+        cosines[order] = both
+        bounds.append(extreme + _edge(cosines, along, others, max(w.delta for w in views),
+                                      sign))
+    return sign * max(min(bounds), extreme)
 
 
 def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,

@@ -26,9 +26,10 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from damon_ros.core.shapes import Shape
+from damon_ros.core.shapes import Shape, volume
 from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
+from damon_ros.perception.joint_fit import joint_fit
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
 from damon_ros.perception.stationarity import Stationarity
@@ -213,6 +214,7 @@ class Tracker:
         self._next_id = 0
         self._last_stamp: float | None = None
         self._views: dict[int, tuple[float, list[Detection]]] = {}  # see `update_camera`
+        self._cameras: dict[int, Camera] = {}  # the camera of each view
         self._at_last: set[int] = set()  # the views of the instant tracked last
 
     def reset(self) -> None:
@@ -258,7 +260,8 @@ class Tracker:
         self._check_stamp(stamp_s)
         views = [detect(c, self.config, rgb, depth, self.segmenter, True)
                  for c, (rgb, depth) in zip(cameras, frames, strict=True)]
-        self.detections = self._fused(views, [0.0] * len(views), anchored=False)
+        self.detections = self._fused(views, [0.0] * len(views), anchored=False,
+                                      cameras=list(cameras))
         return self._track(stamp_s)
 
     def update_camera(self, view: int, camera: Camera, rgb: np.ndarray, depth: np.ndarray,
@@ -285,20 +288,25 @@ class Tracker:
             self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
         found = detect(camera, self.config, rgb, depth, self.segmenter, True)
         self._views[view] = (stamp_s, found)
+        self._cameras[view] = camera
         if older and not same_instant:
             return None
         now = last if same_instant else stamp_s
-        others = [(s, d) for v, (s, d) in sorted(self._views.items())
+        others = [(v, s, d) for v, (s, d) in sorted(self._views.items())
                   if v != view and 0.0 <= now - s <= self.config.fusion_window_s]
-        slack = [self.config.max_speed_mps * (now - s) for s in [stamp_s] + [s for s, _ in others]]
-        self.detections = self._fused([found] + [d for _, d in others], slack, anchored=True)
+        slack = [self.config.max_speed_mps * (now - s)
+                 for s in [stamp_s] + [s for _, s, _ in others]]
+        self.detections = self._fused([found] + [d for _, _, d in others], slack, anchored=True,
+                                      cameras=[camera] + [self._cameras[v] for v, _, _ in others])
         self._at_last = {v for v, (s, _) in self._views.items()
                          if now - SAME_INSTANT_S <= s <= now}
         return self._track(now)
 
     def _fused(self, views: list[list[Detection]], slack: list[float],
-               anchored: bool) -> list[Detection]:
-        """Per colour class, the detections of several views fused (:func:`fusion.fuse`)."""
+               anchored: bool, cameras: list[Camera]) -> list[Detection]:
+        """Per colour class, the detections of several views fused (:func:`fusion.fuse`);
+        an object that several cameras saw whole at one instant gets the one shape fitted
+        to all their points instead when it is smaller (:func:`joint_fit.joint_fit`)."""
         if len(views) == 1:
             return list(views[0])
         out = []
@@ -309,6 +317,13 @@ class Tracker:
             for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
                                                 seen, self.config.face_tolerance_m):
                 parts = [mine[v][i] for v, i in members]
+                if not partial and all(slack[v] == 0.0 and not d.partial
+                                       for (v, _), d in zip(members, parts, strict=True)):
+                    joint = joint_fit([(cameras[v], d.shape, d.surface)
+                                       for (v, _), d in zip(members, parts, strict=True)],
+                                      self.config, color)
+                    if joint is not None and volume(joint) < volume(shape):
+                        shape = joint
                 surfaces = [d.surface for d in parts if d.surface is not None]
                 out.append(Detection(color, shape, shape.kind == "sphere", partial,
                                      sum(d.points for d in parts),

@@ -343,6 +343,33 @@ def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
     assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
 
 
+def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
+    """A yawed box seen from the front and from the side at one instant: one upright box is
+    fitted to the union of both cameras' points (each face its plane, each silhouette the
+    tightest camera's), which contains the box and is tighter than the intersection of the
+    two cameras' own boxes."""
+    from damon_ros.perception.fusion import fuse
+
+    half = np.radians(25.0) / 2
+    box = {"name": "b", "shape": "box", "size": [0.09, 0.16, 0.2], "color": "red",
+           "pose": {"position": [0.55, 0.05, 0.4],
+                    "orientation": [0, 0, np.sin(half), np.cos(half)]}}
+    side = load_camera("camera_side.yaml")
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (CAMERA, side)]
+        (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, side], frames, 0.0)
+        assert track.shape.kind == "box"
+        assert _inside(track.shape, [truth]) == 1.0
+        views = [detect(c, CONFIG, *f) for c, f in zip((CAMERA, side), frames, strict=True)]
+        ((fused, _, _),) = fuse([[(d.shape, d.partial) for d in v] for v in views], 0.15,
+                                seen=[[d.surface for d in v] for v in views])
+        assert shapes.volume(track.shape) < shapes.volume(fused)
+        assert shapes.volume(track.shape) < 1.4 * shapes.volume(truth)
+
+
 def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
     """Two cameras whose frames are 15 ms apart (the tracker node's case): each frame is
     fused with the other camera's latest one, grown by max_speed x age, so the bound of a
