@@ -8,7 +8,7 @@ one instant see one object in one place, so their points (in the base frame) are
 surface: here one primitive is fitted to the union. A box then has its faces from whichever
 camera saw them (the front camera's face, the side camera's depth), each a fitted plane,
 and no prior where some camera saw the extent; a ball's cap from two sides fixes its centre
-and radius better than either cap. Anything else (a cylinder, a blob, a view flagged
+and radius better than either cap. Anything else (a cylinder, a blob, views all flagged
 partial, frames of different instants) keeps the fused bound.
 """
 
@@ -39,22 +39,24 @@ def _sphere(points: np.ndarray, config: TrackerConfig, name: str) -> Shape | Non
                  centre, name=name)
 
 
-def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray]], config: TrackerConfig,
+def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: TrackerConfig,
               name: str = "") -> Shape | None:
     """One shape for what several cameras saw of one object at one instant, or None.
 
-    ``views``: per camera, its own bound of the object and the base-frame points it saw.
+    ``views``: per camera, its own bound of the object, the base-frame points it saw and
+    whether its view is flagged partial (its points count, its silhouette bounds nothing).
     Spheres in every view give the sphere of the union; boxes (or hulls) the upright box of
     the union (`tight_fit.fit_box_seen`). None when fewer than two views have points or the
     union fits no such shape: the caller keeps its fused bound.
     """
-    seen = [(c, s, p) for c, s, p in views if p is not None and len(p)]
-    if len(seen) < 2:
+    seen = [(c, s, p, cut) for c, s, p, cut in views if p is not None and len(p)]
+    if len(seen) < 2 or all(cut for *_, cut in seen):
         return None
-    kinds = {s.kind for _, s, _ in seen}
+    kinds = {s.kind for _, s, _, _ in seen}
     if kinds == {"sphere"}:
-        return _sphere(np.vstack([p for _, _, p in seen]), config, name)
+        return _sphere(np.vstack([p for _, _, p, _ in seen]), config, name)
     if kinds <= {"box", "points"}:
-        fit = fit_box_seen([(c, p) for c, _, p in seen], config, name)
+        fit = fit_box_seen([(c, p) for c, _, p, _ in seen], config, name,
+                           [cut for *_, cut in seen])
         return None if fit is None else fit.shape
     return None

@@ -127,11 +127,13 @@ def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
 
 
 def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConfig,
-                 name: str = "") -> BoxFit | None:
+                 name: str = "", cut: Sequence[bool] | None = None) -> BoxFit | None:
     """The upright box of the base-frame points several cameras saw of one object at one
     instant (``views``: each camera and its points), or None when they are no box. A face
     is visible when it has points and some camera faces it; each point's ray is its own
-    camera's, the sample spacing the coarsest camera's."""
+    camera's. ``cut[v]``: view ``v`` is flagged partial (an occluder or the image border
+    may cut its silhouette): its points and faces count, its silhouette bounds nothing."""
+    cut = [False] * len(views) if cut is None else list(cut)
     points = np.vstack([p for _, p in views])
     if len(points) < config.min_points:
         return None
@@ -159,7 +161,7 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
     # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
     owner = np.repeat(np.arange(len(views)), [len(p) for _, p in views])
     per_view = [_BoxView(camera, axes, owner == v, local, near_low, near_high, low, high,
-                         config) for v, (camera, _) in enumerate(views)]
+                         config, not cut[v]) for v, (camera, _) in enumerate(views)]
     visible = np.logical_or.reduce([w.facing for w in per_view]) & np.column_stack(
         [near_low.sum(axis=0) >= need, near_high.sum(axis=0) >= need])
     if not visible.any() or _tilted(local, near_low, near_high, visible):
@@ -180,14 +182,12 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
             # with the obliquity of the rays there: at a far edge the face is seen more
             # grazingly than on average (the last samples along the axis, 5 % and 3)
             # (several cameras: each one's silhouette bounds the object, the tightest holds)
-            if not visible[k, 0]:
-                lo[k] = _silhouette(per_view, local[:, k], k, -1, others) - margin_face
-            else:
-                lo[k] -= margin_face
-            if not visible[k, 1]:
-                hi[k] = _silhouette(per_view, local[:, k], k, 1, others) + margin_face
-            else:
-                hi[k] += margin_face
+            ends = [_silhouette(per_view, local[:, k], k, sign, others)
+                    if not visible[k, side] else None for side, sign in ((0, -1), (1, 1))]
+            if any(e is not None and not math.isfinite(e) for e in ends):
+                return None  # only cut views show that silhouette
+            lo[k] = lo[k] - margin_face if ends[0] is None else ends[0] - margin_face
+            hi[k] = hi[k] + margin_face if ends[1] is None else ends[1] + margin_face
             seen.append(True)
             hidden.append(0.0)
             continue
@@ -217,13 +217,14 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
 
 class _BoxView:
     """What one camera shows of a box fit: its points (``mask`` of the union), the faces
-    it faces and has points on (``visible``), its sample spacing at its farthest point
-    and how squarely its rays meet each axis's faces (``cosines``)."""
+    it faces and has points on (``visible``), its sample spacing at its farthest point,
+    how squarely its rays meet each axis's faces (``cosines``), and whether its
+    silhouette is whole (not flagged partial)."""
 
     def __init__(self, camera: Camera, axes: np.ndarray, mask: np.ndarray, local: np.ndarray,
                  near_low: np.ndarray, near_high: np.ndarray, low: np.ndarray,
-                 high: np.ndarray, config: TrackerConfig) -> None:
-        self.mask = mask
+                 high: np.ndarray, config: TrackerConfig, whole: bool = True) -> None:
+        self.mask, self.whole = mask, whole
         eye = camera.position @ axes
         reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
         self.facing = np.column_stack([eye < low - reach, eye > high + reach])
@@ -242,16 +243,18 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
                 others: list[int]) -> float:
     """Where the box ends at the ``sign`` end of axis ``k`` when no face there is seen: a
     sample spacing (`_edge`) beyond the last point of a camera that sees a face spanning
-    the axis, the tightest of these cameras (each silhouette bounds the object), never
-    inside a point any camera saw."""
+    the axis, the tightest of these cameras (each whole silhouette bounds the object), never
+    inside a point any camera saw; infinite when only cut-off views could bound it."""
     extreme = float(np.max(sign * along))
     bounds = []
     for w in views:
         spans = [j for j in range(3) if j != k and w.visible[j].any()]
-        if spans and np.any(w.mask):
+        if spans and w.whole and np.any(w.mask):
             mine = along[w.mask]
             bounds.append(float(np.max(sign * mine))
                           + _edge(w.cosines, mine, spans, w.delta, sign))
+    if not bounds and not all(w.whole for w in views):
+        return sign * math.inf
     if not bounds:  # no single camera saw a spanning face: all of them together did
         both = np.vstack([w.cosines for w in views])
         order = np.concatenate([np.flatnonzero(w.mask) for w in views])

@@ -317,9 +317,8 @@ class Tracker:
             for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
                                                 seen, self.config.face_tolerance_m):
                 parts = [mine[v][i] for v, i in members]
-                if not partial and all(slack[v] == 0.0 and not d.partial
-                                       for (v, _), d in zip(members, parts, strict=True)):
-                    joint = joint_fit([(cameras[v], d.shape, d.surface)
+                if not partial and all(slack[v] == 0.0 for v, _ in members):
+                    joint = joint_fit([(cameras[v], d.shape, d.surface, d.partial)
                                        for (v, _), d in zip(members, parts, strict=True)],
                                       self.config, color)
                     if joint is not None and volume(joint) < volume(shape):
