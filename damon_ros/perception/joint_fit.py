@@ -54,7 +54,10 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
         return None
     kinds = {s.kind for _, s, _, _ in seen}
     if kinds == {"sphere"}:
-        return _sphere(np.vstack([p for _, _, p, _ in seen]), config, name)
+        # each whole view's own sphere holds the ball too: the smallest of them all
+        joint = _sphere(np.vstack([p for _, _, p, _ in seen]), config, name)
+        spheres = [s for _, s, _, cut in seen if not cut] + ([joint] if joint else [])
+        return min(spheres, key=lambda s: s.size[0]) if spheres else None
     if kinds <= {"box", "points"}:
         fit = fit_box_seen([(c, p) for c, _, p, _ in seen], config, name,
                            [cut for *_, cut in seen])

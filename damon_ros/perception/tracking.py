@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from damon_ros.core.shapes import Shape, volume
+from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
 from damon_ros.perception.joint_fit import joint_fit
@@ -305,8 +305,8 @@ class Tracker:
     def _fused(self, views: list[list[Detection]], slack: list[float],
                anchored: bool, cameras: list[Camera]) -> list[Detection]:
         """Per colour class, the detections of several views fused (:func:`fusion.fuse`);
-        an object that several cameras saw whole at one instant gets the one shape fitted
-        to all their points instead when it is smaller (:func:`joint_fit.joint_fit`)."""
+        an object that several cameras saw at one instant gets the one shape fitted to all
+        their points instead, where one fits (:func:`joint_fit.joint_fit`)."""
         if len(views) == 1:
             return list(views[0])
         out = []
@@ -314,15 +314,16 @@ class Tracker:
             mine = [[d for d in view if d.color == color] for view in views]
             per_view = [[(d.shape, d.partial) for d in view] for view in mine]
             seen = [[d.surface for d in view] for view in mine]
+
+            def refit(members, mine=mine, color=color):
+                if any(slack[v] != 0.0 for v, _ in members):
+                    return None  # frames of different instants: the object moved between
+                return joint_fit([(cameras[v], mine[v][i].shape, mine[v][i].surface,
+                                   mine[v][i].partial) for v, i in members], self.config, color)
+
             for shape, partial, members in fuse(per_view, self.config.gate_m, slack, anchored,
-                                                seen, self.config.face_tolerance_m):
+                                                seen, self.config.face_tolerance_m, refit):
                 parts = [mine[v][i] for v, i in members]
-                if not partial and all(slack[v] == 0.0 for v, _ in members):
-                    joint = joint_fit([(cameras[v], d.shape, d.surface, d.partial)
-                                       for (v, _), d in zip(members, parts, strict=True)],
-                                      self.config, color)
-                    if joint is not None and volume(joint) < volume(shape):
-                        shape = joint
                 surfaces = [d.surface for d in parts if d.surface is not None]
                 out.append(Detection(color, shape, shape.kind == "sphere", partial,
                                      sum(d.points for d in parts),
