@@ -269,16 +269,16 @@ def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
                  visible: np.ndarray, low: np.ndarray, high: np.ndarray,
                  tol: float) -> tuple[np.ndarray, np.ndarray]:
     """``low`` and ``high`` with each visible face's extreme replaced by its plane: the
-    median of the points near it, then the mean of those within ``tol`` of that (the first
-    window, around the robust extreme, is lopsided; the second is centred on the face, so
-    its mean is unbiased, and a mean costs a tenth of a median)."""
+    median of the points near it, then of those within ``tol`` of that (the first window,
+    around the robust extreme, is lopsided; the second is centred on the face; a mean of
+    it left a grazing top face's far points out)."""
     low, high = low.copy(), high.copy()
     for k in range(3):
         for side, near, out in ((0, near_low, low), (1, near_high, high)):
             if visible[k, side]:
                 values = local[near[:, k], k]
                 plane = float(np.median(values))
-                plane = float(np.mean(values[np.abs(values - plane) <= tol]))
+                plane = float(np.median(values[np.abs(values - plane) <= tol]))
                 out[k] = plane
     return low, high
 
