@@ -265,6 +265,14 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
     return sign * max(min(bounds), extreme)
 
 
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array by one partition (np.median's generic
+    machinery costs ~50 us a call, a few times what the partition does)."""
+    n = len(values)
+    part = np.partition(values, [(n - 1) // 2, n // 2])
+    return 0.5 * float(part[(n - 1) // 2] + part[n // 2])
+
+
 def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
                  visible: np.ndarray, low: np.ndarray, high: np.ndarray,
                  tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -277,9 +285,8 @@ def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
         for side, near, out in ((0, near_low, low), (1, near_high, high)):
             if visible[k, side]:
                 values = local[near[:, k], k]
-                plane = float(np.median(values))
-                plane = float(np.median(values[np.abs(values - plane) <= tol]))
-                out[k] = plane
+                plane = _median(values)
+                out[k] = _median(values[np.abs(values - plane) <= tol])
     return low, high
 
 
