@@ -432,6 +432,10 @@ state steps onto it) where interpolating to it in the time given cannot be follo
 it is refused. A stop reaches the arm within a few mrad of its first point; a jump asked of
 the arm in milliseconds (0.3 rad in 50 ms) is refused."""
 
+STOPPED_COMMAND_RAD_S = 1e-6
+"""rad/s: a `TrajectoryFollower.brake` ends (and the arm holds) once every command is
+below this."""
+
 VELOCITY_FILTER_S = 0.01
 """s: time constant of the measured-velocity estimate used for ``stopped_velocity``."""
 
@@ -524,6 +528,7 @@ class TrajectoryFollower:
         self._pending: tuple | None = None  # set before the first measurement: no state yet
         self._hold_q: np.ndarray | None = None
         self._hold_pending = False
+        self._braking = False  # `brake`: commands fall to zero, then hold where it stopped
         self._q_last: np.ndarray | None = None
         self._t_last: float | None = None
         zeros = np.zeros(self.n)
@@ -576,7 +581,10 @@ class TrajectoryFollower:
         junction = _feasibility(anchored, self.limits)
         if junction is None:
             return Plan(anchored, now)
-        step = float(np.max(np.abs(spline.positions[0] - q)))
+        # how far the first point lies from where the arm gets by then at its command: a
+        # stop from a state measured a few ms ago is ahead of the arm by its speed times
+        # the rest of the 10 ms to its first point (26 mrad at 2.6 rad/s), not off it
+        step = float(np.max(np.abs(spline.positions[0] - (q + u * ahead))))
         if step > JOIN_STEP_RAD or _feasibility(spline, self.limits):
             raise ValueError(junction)
         # The points can be followed, and the first lies within JOIN_STEP_RAD of the arm, but
@@ -585,8 +593,9 @@ class TrajectoryFollower:
         # motion just judged unsafe). Joined instead: the desired state steps to the first
         # point and the command shaper ramps the arm onto it within the acceleration and
         # jerk limits, as it does for any step.
-        return Plan(spline, start, f"joined at its first point {1e3 * step:.1f} mrad away, "
-                                   f"not interpolated to it in {1e3 * ahead:.0f} ms "
+        return Plan(spline, start, f"joined at its first point {1e3 * step:.1f} mrad from "
+                                   f"where the arm's command takes it, not interpolated to it in "
+                                   f"{1e3 * ahead:.0f} ms "
                                    f"({junction.split(': ', 1)[-1]})")
 
     def _checked_spline(self, times, positions, velocities, accelerations,
@@ -606,7 +615,7 @@ class TrajectoryFollower:
         """Replace whatever runs by ``plan`` (from `prepare`)."""
         self._spline, self._start = plan.spline, plan.start
         self._pending, self._hold_q, self._hold_pending = None, None, False
-        self._goal_done = False
+        self._goal_done, self._braking = False, False
         self._e_prev = None  # the error may jump: no derivative kick
 
     def set_trajectory(self, times, positions, velocities=None, accelerations=None,
@@ -638,7 +647,17 @@ class TrajectoryFollower:
         if q.shape != (self.n,) or not np.all(np.isfinite(q)):
             raise ValueError(f"hold position must be {self.n} finite values, got {q}")
         self._spline, self._pending, self._hold_pending = None, None, False
-        self._hold_q = q.copy()
+        self._hold_q, self._braking = q.copy(), False
+        self._e_prev = None
+
+    def brake(self) -> None:
+        """Stop following any trajectory and brake the command to zero within the limits
+        (acceleration and jerk, as `CommandShaper` shapes every command), then hold where
+        the arm came to rest. For a trajectory refused because it cannot be followed from
+        the arm's state: it may have been a stop, and going on with the motion it was meant
+        to end is what must not happen (a soak arm kept moving that way)."""
+        self._spline, self._pending, self._hold_pending = None, None, False
+        self._braking = True
         self._e_prev = None
 
     def take_events(self) -> list[tuple[str, str]]:
@@ -690,6 +709,8 @@ class TrajectoryFollower:
             self._v_est += alpha * ((q - self._q_last) / dt - self._v_est)
         self._t_last = t
         self._resolve_pending(t, q)
+        if self._braking:
+            return self._brake_step(q, cycle)
         q_d, qd_d, qdd_d = self._desired_state(t)
         if self._spline is not None:
             self._check_tolerances(t, q, q_d - q)
@@ -780,6 +801,20 @@ class TrajectoryFollower:
         self._e_prev = self._error = e
         return target, np.where(raw == target, integral, self._integral)
 
+    def _brake_step(self, q: np.ndarray, cycle: float) -> np.ndarray:
+        """One tick of `brake`: the command shaped toward zero (inside the position-limit
+        bounds); once it is zero, hold the measured position."""
+        low, high = self.shaper.position_bounds(q)
+        target = np.minimum(np.maximum(np.zeros(self.n), low), high)
+        self._u, self._a = self.shaper.shape(target, self._u, self._a, cycle)
+        self._integral[:] = 0.0
+        self._error = np.zeros(self.n)
+        self._q_last = q.copy()
+        self._desired = (q.copy(), np.zeros(self.n), np.zeros(self.n))
+        if float(np.max(np.abs(self._u))) <= STOPPED_COMMAND_RAD_S:
+            self._braking, self._hold_q = False, q.copy()
+        return self._u.copy()
+
     def _fault(self, cycle: float) -> np.ndarray:
         self.last_fault = "measured position holds NaN or inf: trajectory aborted, holding"
         self._spline, self._pending = None, None
@@ -821,7 +856,7 @@ class TrajectoryFollower:
         While holding, true when ``q`` is within ``tolerance`` of the held position.
         """
         q = np.asarray(q, dtype=float)
-        if self._pending is not None or self._hold_pending:
+        if self._pending is not None or self._hold_pending or self._braking:
             return False
         if self._spline is not None:
             if t < self._start + self._spline.times[-1]:
