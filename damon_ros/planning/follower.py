@@ -368,6 +368,32 @@ def _shape(target, u, a, vmax, amax, jmax, dt: float, u_next, a_next) -> None:
         a_next[j] = (u_next[j] - u[j]) / dt
 
 
+@njit(cache=True)
+def _pid_step(e, e_prev, has_prev: bool, qd_ff, dt: float, step: float, integral, cap, p, i,
+              d, ff, low, high, u, a, vmax, amax, jmax, cycle: float, u_next, a_next,
+              integral_next) -> None:
+    """One PID tick of `TrajectoryFollower`, compiled (as numpy ~25 us of the 1 kHz loop):
+    feed-forward + P + I (clamped so that its term stays within ``i_clamp``) + D, clipped
+    to the bounds (``low``, ``high``), then shaped from the last command (`_shape`). The
+    integral is kept (anti-windup) only on joints whose raw output was not clipped and
+    whose shaped command is within one step of full acceleration of the target (not
+    rate-limited); a clipped raw output lies beyond the bounds and is never delivered.
+    The same arithmetic in the same order as the numpy it replaces: bit-identical."""
+    n = e.size
+    target, kept = np.empty(n), np.empty(n)
+    for j in range(n):
+        integ = min(max(integral[j] + e[j] * step, -cap[j]), cap[j])
+        raw = ff[j] * qd_ff[j] + p[j] * e[j] + i[j] * integ
+        if has_prev:
+            raw += d[j] * (e[j] - e_prev[j]) / dt
+        target[j] = min(max(raw, low[j]), high[j])
+        kept[j] = integ if raw == target[j] else integral[j]
+    _shape(target, u, a, vmax, amax, jmax, cycle, u_next, a_next)
+    for j in range(n):
+        free = abs(u_next[j] - target[j]) <= amax[j] * cycle
+        integral_next[j] = kept[j] if free else integral[j]
+
+
 # ----------------------------------------------------------------------------- tolerances
 
 @dataclass(frozen=True)
@@ -719,12 +745,7 @@ class TrajectoryFollower:
         qd_ff = qd_d
         if self._spline is not None and self.velocity_lead_s > 0.0:
             qd_ff = self._spline.evaluate(t - self._start + self.velocity_lead_s)[1]
-        target, integral = self._pid(q_d - q, qd_ff, dt, q)
-        self._u, self._a = self.shaper.shape(target, self._u, self._a, cycle)
-        # Anti-windup: integrate only where the arm is given what the PID asked for — not
-        # clipped, and not more than a step of full acceleration behind (rate-limited).
-        free = np.abs(self._u - target) <= self.shaper.amax * cycle
-        self._integral = np.where(free, integral, self._integral)
+        self._pid(q_d - q, qd_ff, dt, q, cycle)
         self._q_last = q.copy()
         self._desired = (q_d, qd_d, qdd_d)
         return self._u.copy()
@@ -782,24 +803,22 @@ class TrajectoryFollower:
             return self._hold_q.copy(), zero, zero.copy()
         return self._spline.evaluate(t - self._start)
 
-    def _pid(self, e: np.ndarray, qd_d: np.ndarray, dt: float, q: np.ndarray):
-        """(PID + feed-forward clipped to the velocity and position-limit bounds, integral).
-
-        The integral returned is clamped so that its term stays within ``i_clamp``; `update`
-        keeps it only on joints whose output is not saturated, and only if it was not clipped
-        here (a clipped raw output lies beyond the bounds, so it can never be delivered).
+    def _pid(self, e: np.ndarray, qd_d: np.ndarray, dt: float, q: np.ndarray,
+             cycle: float) -> None:
+        """PID + feed-forward clipped to the velocity and position-limit bounds, shaped into
+        the next command (`CommandShaper`), with the integral's anti-windup: `_pid_step`.
         """
         g = self.gains
         step = min(dt, 10.0 / self.rate_hz)  # a stalled loop must not dump a lump into I
-        cap = self._integral_cap
-        integral = np.minimum(np.maximum(self._integral + e * step, -cap), cap)
-        raw = g.ff_velocity_scale * qd_d + g.p * e + g.i * integral
-        if self._e_prev is not None:
-            raw += g.d * (e - self._e_prev) / dt
         low, high = self.shaper.position_bounds(q)
-        target = np.minimum(np.maximum(raw, low), high)
+        u, a, integral = np.empty(self.n), np.empty(self.n), np.empty(self.n)
+        sh = self.shaper
+        _pid_step(e, self._e_prev if self._e_prev is not None else e,
+                  self._e_prev is not None, qd_d, dt, step, self._integral,
+                  self._integral_cap, g.p, g.i, g.d, g.ff_velocity_scale, low, high, self._u,
+                  self._a, sh.vmax, sh.amax, sh.jmax, cycle, u, a, integral)
+        self._u, self._a, self._integral = u, a, integral
         self._e_prev = self._error = e
-        return target, np.where(raw == target, integral, self._integral)
 
     def _brake_step(self, q: np.ndarray, cycle: float) -> np.ndarray:
         """One tick of `brake`: the command shaped toward zero (inside the position-limit
