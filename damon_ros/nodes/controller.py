@@ -21,7 +21,10 @@ silently.
   point (unless ``allow_nonzero_velocity_at_trajectory_end``), a stamped trajectory that
   has already ended, and one that cannot be followed within the limit profile (points or
   the curve between them beyond the position, velocity or acceleration limits) — never
-  clipped silently. Gains and tolerances take JTC's parameter names
+  clipped silently. Unlike the JTC, a well-formed trajectory refused only because it
+  cannot be followed from the arm's current state (`TrajectoryFollower.prepare`) brakes
+  the arm to a stop and holds it: it may have been a stop, and the motion it was sent to
+  end must not go on (a soak arm did). Gains and tolerances take JTC's parameter names
   (``gains.<joint>.p|i|d|i_clamp|ff_velocity_scale``, ``constraints.<joint>.trajectory|goal``,
   ``constraints.goal_time``, ``constraints.stopped_velocity_tolerance``); a tolerance
   violated aborts the trajectory and holds the measured position, with one line.
@@ -260,6 +263,7 @@ class Controller(Node):
                 state = self._follower.snapshot()
             if reason is None and state is None:
                 reason = "the control loop has not run yet"
+        unfollowable = False
         if reason is None:
             try:  # the long checks outside the lock: the 1 kHz loop must not wait for them
                 arrays = reorder_points(msg.joint_names, self.names, times, pos, vel, acc,
@@ -270,7 +274,15 @@ class Controller(Node):
                     if reason is None:
                         self._follower.start(plan)
             except ValueError as exc:
-                reason = str(exc)
+                reason, unfollowable = str(exc), True
+        if reason is not None and unfollowable:
+            # well formed, but not followable from the arm's state: it may have been a stop,
+            # so the motion it was sent to replace must not go on (module doc)
+            with self._lock:
+                self._follower.brake()
+            log.error(f"rejected trajectory of {len(msg.points)} points: {reason}; braking "
+                      "to a stop and holding there")
+            return
         if reason is not None:
             log.error(f"rejected trajectory of {len(msg.points)} points: {reason}; ignored, "
                       "the arm keeps its current motion")

@@ -27,7 +27,7 @@ from nav_msgs.msg import Path
 from nav_msgs.srv import GetPlan
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
@@ -115,6 +115,8 @@ PARAMETERS = (
 )
 
 
+LATEST_ONLY = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+"""QoS of a reader that needs only the newest message of a 1 kHz topic."""
 MOVING_START_RAD_S = 1e-6
 """rad/s: a trajectory whose first sample moves faster than this starts from a moving arm
 and goes out stamped (`_publish_trajectory`); the planner's from a state at rest start at
@@ -213,9 +215,11 @@ class PlannerNode(Node):
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
         self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
         self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
-        # the newest joint state only: `_take_joint_state` reads it when a decision needs it
+        # the newest joint state only: `_take_joint_state` reads it when a decision needs it;
+        # best effort: a reliable reader costs the 1 kHz publisher an acknowledgement
+        # exchange for states this one overwrites unread
         self.joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states",
-                                  qos=1)
+                                  qos=LATEST_ONLY)
         self._obstacles_received: float | None = None  # first array of the pending batch
         self.obstacle_reader = TopicReader(self, MarkerArray, topics.OBSTACLES,
                                            self._on_obstacles, suffix="obstacles",
@@ -227,7 +231,9 @@ class PlannerNode(Node):
         self.create_subscription(PoseStamped, topics.GOAL_POSE, self._on_goal, 10)
         self.create_service(GetPlan, topics.PLAN_SERVICE, self._on_plan_service)
         self.create_service(Trigger, topics.STOP_SERVICE, self._on_stop_service)
-        self.create_timer(1.0 / p["monitor_rate_hz"], self._monitor)
+        self._monitor_period = 1.0 / p["monitor_rate_hz"]
+        self._last_step = -math.inf  # monotonic time of the last path check (`_step`)
+        self.create_timer(self._monitor_period, self._monitor)
         self.create_timer(0.1, self._publish_status)
         self.get_logger().info(
             f"planner ready: model {self.model.directory} ({self.model.graph.n_vertices} "
@@ -370,12 +376,18 @@ class PlannerNode(Node):
 
     # ---- the loop ---------------------------------------------------------------------
     def _monitor(self) -> None:
+        """The fixed-rate path check: skipped when a decision on an obstacle batch checked
+        the path within the last period (at 30 fps the tracker's arrays come faster than
+        this timer, which then only repeated the check on the same data)."""
         if self._unseen_goal is not None:
             self._retry_unseen()
+        if time.monotonic() - self._last_step < self._monitor_period:
+            return
         self._step(time.perf_counter())
 
     def _step(self, received: float) -> None:
         with self.deciding:  # the state and the decision from it under one hold
+            self._last_step = time.monotonic()
             q, qd = self._current_state()
             if q is None or self.runtime.state == "idle":  # "reached": movers may come
                 return

@@ -14,6 +14,7 @@ before holding, and a holding arm a mover's prediction will reach evades as well
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -79,6 +80,69 @@ class Event:
     latency_ms: float = 0.0
 
 
+_NUMBER = re.compile(r"-?\d+(\.\d+)?")
+
+
+@dataclass
+class RetryPacer:
+    """When a holding arm searches for a route again.
+
+    Every ``period_s`` at most, as before; but a failing search takes its whole budget
+    (up to 0.25 s of graph search and 0.8 s of RRT fallback), so retried every 0.1 s it
+    pinned a core while the arm held (soak). Now: after a failed retry the next waits
+    until the retries have used at most ``cpu_share`` of the time since it began, and the
+    period doubles (up to ``max_period_s``) while the same failure repeats (its reason
+    with the numbers left out). A changed obstacle picture (an obstacle appeared, went, or
+    moved ``moved_m`` since the failed retry) is retried at once, within the share.
+    """
+
+    period_s: float = 0.1
+    max_period_s: float = 0.8
+    cpu_share: float = 0.5
+    moved_m: float = 0.03
+    _wait: float = 0.0
+    _next: float = -math.inf  # the backed-off time of the next retry
+    _budget_next: float = -math.inf  # the earliest one within the share
+    _reason: str = ""
+    _seen: dict = field(default_factory=dict)  # obstacle name -> position at the failure
+
+    def __post_init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """A new hold (or the end of one): retry at once."""
+        self._wait, self._next, self._budget_next = self.period_s, -math.inf, -math.inf
+        self._reason, self._seen = "", {}
+
+    def due(self, t: float, shapes: Scene) -> bool:
+        """Whether a retry may start at ``t`` with the obstacles ``shapes``."""
+        if t >= self._next:
+            return True
+        return t >= self._budget_next and self._changed(shapes)
+
+    def failed(self, t: float, spent_s: float, reason: str, shapes: Scene) -> None:
+        """A retry begun at ``t`` failed after ``spent_s`` s (its cost) with ``reason``."""
+        kind = _NUMBER.sub("#", reason)
+        self._wait = (min(2.0 * self._wait, self.max_period_s) if kind == self._reason
+                      else self.period_s)
+        self._reason = kind
+        self._budget_next = t + spent_s / self.cpu_share
+        self._next = max(t + self._wait, self._budget_next)
+        self._seen = _positions(shapes)
+
+    def _changed(self, shapes: Scene) -> bool:
+        now = _positions(shapes)
+        if now.keys() != self._seen.keys():
+            return True
+        return any(float(np.linalg.norm(p - self._seen[name])) > self.moved_m
+                   for name, p in now.items())
+
+
+def _positions(shapes: Scene) -> dict:
+    """Obstacle name (or index) -> position of the obstacles now."""
+    return {s.name or str(k): np.asarray(s.position, float) for k, s in enumerate(shapes.now)}
+
+
 @dataclass
 class RuntimeConfig:
     prediction_horizon_s: float = 0.3
@@ -120,7 +184,8 @@ class ReactivePlanner:
         self.trajectory = None  # what runs, and its time 0 on the caller's clock (or None)
         self._t_start: float | None = None
         self._sample = 0  # the trajectory sample the arm was last found at
-        self.last_retry = -math.inf
+        self.retries = RetryPacer(self.config.retry_period_s)
+        self._failure = ""  # the reason of the last failed route search (`_reroute`)
         self.last_probability = 0.0
         self.pending_goal = None  # a goal given before obstacle data arrived
         self._pending_since: float | None = None  # first update that saw it waiting
@@ -231,9 +296,11 @@ class ReactivePlanner:
             # escape before the retry: a failing route search takes up to the time budget,
             # and in the soak a falling sphere reached holding arms during those searches
             event = self._escape_if_threatened(q_now, shapes, qd_now)
-            if event is None and t - self.last_retry >= self.config.retry_period_s:
-                self.last_retry = t
+            if event is None and self.retries.due(t, shapes):
+                t0 = time.perf_counter()
                 event = self._reroute(q_now, shapes, "route found again; resuming", qd_now)
+                if event is None:
+                    self.retries.failed(t, time.perf_counter() - t0, self._failure, shapes)
             return event
         if self._stalled(t, q_now):
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
@@ -241,7 +308,8 @@ class ReactivePlanner:
                                  qd_now)
         if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
             if np.max(np.abs(self.path[-1] - self.planner.goal_q)) > 1e-9:
-                self.state, self.last_retry = "holding", -math.inf  # an escape move ended
+                self.state = "holding"  # an escape move ended
+                self.retries.reset()
                 return None
             self.state = "reached"
             return Event("reached", "goal reached")
@@ -343,6 +411,7 @@ class ReactivePlanner:
         result = self.planner.replan(q_now, shapes, qd_now=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         if not result.success:
+            self._failure = result.reason
             if self.state == "holding":
                 return None
             if follow_on:  # no stop was sent: a certified escape, else on along the way
@@ -396,7 +465,7 @@ class ReactivePlanner:
     def _hold(self, reason: str, result: PlanResult | None = None, latency: float = 0.0) -> Event:
         self.state = "holding"
         self.stats.holds += 1
-        self.last_retry = -math.inf
+        self.retries.reset()
         return Event("hold", reason, result, latency)
 
     def _advance(self, q_now: np.ndarray) -> np.ndarray:

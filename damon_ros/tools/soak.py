@@ -5,12 +5,16 @@ that drops samples once a minute, a rare contact. mock_panda (1 kHz, exact conta
 limit monitor), controller, planner, mock_camera (``--fps``) and tracker run on a private
 ROS domain, each its own process, on a soak scenario built here (a public start state, the
 box of D-001 and two spheres that sweep across the paths between the goals for the whole
-run). A new goal, cycling through poses of public scenarios, goes out every
-``--goal-period-s``. This process watches the graph (`soak_monitor.Monitor`) and closes
-one row per ``--window-s``: throughput, latency percentiles, RSS of every node, dropped
-messages, contacts and limit violations. It prints a progress line per window, then the tables and
-a verdict, and writes ``soak.json`` (parameters, rows, verdict) beside the node logs and
-the scenario file in ``--out``.
+run). A new goal, cycling through poses of public scenarios, goes out ``--goal-period-s``
+after the last was sent once that one is reached (scored before it is replaced), or after
+``--goal-timeout-s`` unreached: a goal a passing sphere blocks is reached once it passes,
+and one still unreached then is reported as truly unreachable, with the planner's status
+and the causes of its holds (every goal's record is in the report). This process watches
+the graph (`soak_monitor.Monitor`) and closes one row per ``--window-s``: throughput,
+latency percentiles, RSS of every node, dropped messages, contacts and limit violations.
+It prints a progress line per window, then the tables, the goals and a verdict, and
+writes ``soak.json`` (parameters, rows, verdict) beside the node logs and the scenario file
+in ``--out``.
 
 Exit 0 only when: no node crashed, no contact, no limit violation, at least one goal was
 reached, and (with 3 or more windows) the last window's p99 re-route latency (obstacle
@@ -111,7 +115,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=10.0, help="measured time (default 10)")
     p.add_argument("--window-s", type=float, default=60.0, help="seconds per row (default 60)")
     p.add_argument("--goal-period-s", type=float, default=6.0,
-                   help="a new goal every this many seconds (default 6)")
+                   help="a reached goal is replaced this many seconds after it was sent "
+                        "(default 6)")
+    p.add_argument("--goal-timeout-s", type=float, default=20.0,
+                   help="an unreached goal stays in force this long, then counts as "
+                        "unreachable and is replaced (default 20)")
     p.add_argument("--fps", type=float, default=90.0, help="mock camera frame rate (default 90)")
     p.add_argument("--no-camera", action="store_true",
                    help="planner on ground-truth obstacles; no images, no tracker")
@@ -149,6 +157,8 @@ def _argument_problem(args) -> str:
     checks = [(args.minutes > 0, "--minutes must be > 0"),
               (args.window_s >= 5.0, "--window-s must be >= 5"),
               (args.goal_period_s >= 1.0, "--goal-period-s must be >= 1"),
+              (args.goal_timeout_s >= args.goal_period_s,
+               "--goal-timeout-s must be >= --goal-period-s"),
               (0.1 <= args.fps <= 240.0, "--fps must be in 0.1..240"),
               (args.startup_s >= 0.0, "--startup-s must be >= 0"),
               (args.domain_id is None or 1 <= args.domain_id <= 100,
@@ -257,7 +267,8 @@ def run_soak(args, domain: int, out: Path, scenario: Path, goals: list[SoakGoal]
     start_time = time.time() + args.startup_s
     print(f"damon-ros soak: {args.minutes:g} min on ROS_DOMAIN_ID={domain}, "
           f"{'ground-truth obstacles' if args.no_camera else f'camera {args.fps:g} fps + tracker'}"
-          f", a goal every {args.goal_period_s:g} s over {len(goals)} poses, "
+          f", a goal every {args.goal_period_s:g} s once reached (unreached: "
+          f"{args.goal_timeout_s:g} s) over {len(goals)} poses, "
           f"{args.window_s:g} s windows; logs in {out}", flush=True)
     procs: dict = {}
     exit_codes: dict[str, int] = {}

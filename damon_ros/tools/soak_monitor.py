@@ -252,6 +252,38 @@ class GoalState:
     times: list[float] = field(default_factory=list)  # goal -> reached (s), this window
 
 
+@dataclass
+class GoalRecord:
+    """One goal sent: when (wall time), when reached (s after the send, None: not), what
+    the planner held the arm for meanwhile (its "stopping the arm" lines, by cause) and how
+    it ended: ``reached``, ``timed out`` (not reached within ``--goal-timeout-s``: truly
+    unreachable, with ``why``, the planner's status then) or ``open`` (the run ended)."""
+
+    name: str
+    sent_at: float
+    reached_after_s: float | None = None
+    holds: dict[str, int] = field(default_factory=dict)
+    outcome: str = "open"
+    why: str = ""
+
+    def row(self, t0: float) -> dict:
+        """The record for the report: times from ``t0`` (the first window's start)."""
+        return {"goal": self.name, "sent_s": round(self.sent_at - t0, 2),
+                "reached_after_s": None if self.reached_after_s is None
+                else round(self.reached_after_s, 2),
+                "holds": dict(self.holds), "outcome": self.outcome, "why": self.why}
+
+
+HOLD = re.compile(r"\[(\d+\.\d+)\] \[planner\]: stopping the arm: (.*)")
+_NUMBER = re.compile(r"-?\d+(\.\d+)?")
+
+
+def hold_cause(reason: str) -> str:
+    """A planner hold's reason as a cause to count: its first clause, numbers as #, so
+    that the same obstacle in the way reads as one cause at different distances."""
+    return _NUMBER.sub("#", reason.split(";")[0].strip())
+
+
 class Monitor:
     """This process's view of the graph: own rclpy context, direct takes, no executor.
 
@@ -278,7 +310,8 @@ class Monitor:
         self.planner_log = LogTail(out / "planner.log")
         self.tracker_log = LogTail(out / "tracker.log")
         self.goal = GoalState()
-        self.missed: list[str] = []  # why each goal replaced unreached was (`_why_missed`)
+        self.missed: list[str] = []  # why each goal timed out unreached (`_why_missed`)
+        self.records: list[GoalRecord] = []  # every goal sent, in order
         self.rss: dict[str, list[float]] = {}
         self.q_outside = 0
         self._window_start = 0.0
@@ -294,6 +327,10 @@ class Monitor:
 
         deep = 2000  # 2 s of a 1 kHz topic: nothing lost while this process is busy
         best_effort = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
+        # best effort: a reliable reader costs mock_panda an acknowledgement exchange per
+        # state; what this one misses is counted (js_monitor_lost), the gaps it measures
+        # are between consecutive sequence numbers only
+        joint_qos = QoSProfile(depth=deep, reliability=ReliabilityPolicy.BEST_EFFORT)
         n = self.node
         self.joints = JointStream()
         self.contacts = Contacts()
@@ -303,7 +340,7 @@ class Monitor:
         frames = (topics.SIM_OBSTACLES, MarkerArray, 200) if self.args.no_camera else (
             topics.CAMERA_INFO, CameraInfo, best_effort)
         self.taps = {
-            "joint_states": Tap(n, JointState, topics.JOINT_STATES, deep, self.joints),
+            "joint_states": Tap(n, JointState, topics.JOINT_STATES, joint_qos, self.joints),
             "frames": Tap(n, frames[1], frames[0], frames[2]),
             "obstacles": Tap(n, MarkerArray, topics.OBSTACLES, 200),
             "trajectories": Tap(n, JointTrajectory, topics.JOINT_TRAJECTORY, 100,
@@ -341,7 +378,7 @@ class Monitor:
         for k in range(windows):
             w_end = min(warm_end + (k + 1) * self.args.window_s, end)
             crashed = not self._pump_until(w_end)
-            rows.append(self._close_window(k + 1, warm_end, time.time()))
+            rows.append(self._close_window(k + 1, warm_end, time.time(), last=k + 1 == windows))
             print_progress(rows[-1], windows)
             if crashed:
                 return rows, self._crashes(), "stopped early: a node exited"
@@ -390,10 +427,9 @@ class Monitor:
             self._drain()
             if not self._alive():
                 return False
-            k = int((now - self.goal.sent_at) // self.args.goal_period_s)
-            if k >= 1:
-                self._send_goal(self.goal.index + 1, self.goal.sent_at +
-                                k * self.args.goal_period_s)
+            if self._goal_due(now):
+                self._score(now)  # scored before it is replaced: reached at the last moment
+                self._send_goal(self.goal.index + 1, time.time())
             if now >= next_score:
                 next_score = now + SCORE_PERIOD_S
                 self._score(now)
@@ -404,12 +440,24 @@ class Monitor:
         self._drain()
         return self._alive()
 
+    def _goal_due(self, now: float) -> bool:
+        """The next goal goes out ``--goal-period-s`` after this one was sent once it is
+        reached, or ``--goal-timeout-s`` after it unreached. Replaced at a fixed period,
+        a goal a passing sphere blocked for a few seconds counted as missed, and the next
+        one started late into its own period (the period ran from the schedule, not the
+        send)."""
+        elapsed = now - self.goal.sent_at
+        return elapsed >= self.args.goal_timeout_s or (
+            self.goal.reached and elapsed >= self.args.goal_period_s)
+
     def _send_goal(self, index: int, t: float) -> None:
         from geometry_msgs.msg import PoseStamped
 
         if self.goal.index >= 0 and not self.goal.reached:
             self.missed.append(self._why_missed())
+            self.records[-1].outcome, self.records[-1].why = "timed out", self.missed[-1]
         goal = self.goals[index % len(self.goals)]
+        self.records.append(GoalRecord(goal.name, t))
         msg = PoseStamped()
         msg.header.frame_id = "panda_link0"
         msg.header.stamp = to_stamp(time.time())
@@ -448,6 +496,8 @@ class Monitor:
             self.goal.reached = True
             self.goal.reached_count += 1
             self.goal.times.append(now - self.goal.sent_at)
+            self.records[-1].reached_after_s = now - self.goal.sent_at
+            self.records[-1].outcome = "reached"
 
     def _cpu_now(self) -> dict[str, float]:
         cpu = {name: cpu_seconds(proc.pid) for name, proc in self.procs.items()}
@@ -472,6 +522,7 @@ class Monitor:
             "holds": self.trajectories.holds, "q_outside": self.q_outside,
             "limits": self._limit_counts(), "sent": self.goal.sent,
             "reached": self.goal.reached_count, "missed": len(self.missed),
+            "records": len(self.records) - 1,  # the goal in force belongs to this window
         }
         self.joints.max_gap, self.joints.gaps = 0.0, 0
         self.contacts.min_clearance, self.contacts.worst = math.inf, ""
@@ -493,7 +544,8 @@ class Monitor:
             return 0
         return tap.last_seq - (seq0 if seq0 is not None else tap.first_seq - 1)
 
-    def _close_window(self, index: int, warm_end: float, now: float) -> dict:
+    def _close_window(self, index: int, warm_end: float, now: float,
+                      last: bool = False) -> dict:
         self._drain()
         m, duration = self._mark, max(now - self._window_start, 1e-9)
         row = {"window": index, "t0_s": round(self._window_start - warm_end, 1),
@@ -510,7 +562,12 @@ class Monitor:
         row["goals_reached"] = self.goal.reached_count - m["reached"]
         row["goal_time_s_p50"] = float(np.median(self.goal.times)) if self.goal.times \
             else math.nan
+        row["goals_reached_in_period"] = sum(t <= self.args.goal_period_s
+                                             for t in self.goal.times)
         row["goals_missed"] = self.missed[m["missed"]:]
+        # the goals that ended in this window (and, in the last, the one still open)
+        end = len(self.records) if last else len(self.records) - 1
+        row["goal_records"] = [r.row(warm_end) for r in self.records[max(m["records"], 0):end]]
         row["planner_status"] = _status_values(self.planner_status.message)
         return row
 
@@ -545,6 +602,7 @@ class Monitor:
         decided: dict[str, list[float]] = {"plan": [], "re-route": []}
         after: list[float] = []
         for line in self.planner_log.lines():
+            self._count_hold(line)
             match = DECISION.search(line)
             if match and float(match.group(1)) >= self._warm_end:
                 decided[match.group(2)].append(float(match.group(3)))
@@ -560,6 +618,17 @@ class Monitor:
         return {"reroute_decided_ms": _percentiles(decided["re-route"]),
                 "reroute_after_input_ms": _percentiles(after),
                 "plan_decided_ms": _percentiles(decided["plan"]), "tracker": tracker}
+
+    def _count_hold(self, line: str) -> None:
+        """A planner hold line counted, by cause, on the goal in force at its stamp."""
+        match = HOLD.search(line)
+        if match is None:
+            return
+        stamp = float(match.group(1))
+        record = next((r for r in reversed(self.records) if r.sent_at <= stamp), None)
+        if record is not None:
+            cause = hold_cause(match.group(2))
+            record.holds[cause] = record.holds.get(cause, 0) + 1
 
     def _safety(self) -> dict:
         limits, before = self._limit_counts(), self._mark["limits"]

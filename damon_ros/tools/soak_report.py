@@ -48,8 +48,11 @@ def verdict(rows: list[dict], crashes: list[str], note: str) -> dict:
           f"jerk ones {total['acceleration_jitter']} and {total['jerk_jitter']} are within "
           f"the limits at the controller's own tick spacing); {total['late']} late commands")
     reached = sum(r["goals_reached"] for r in rows)
+    in_period = sum(r.get("goals_reached_in_period", 0) for r in rows)
+    timed_out = sum(len(r.get("goals_missed", [])) for r in rows)
     check("goals reached", reached > 0,
-          f"{reached} of {sum(r['goals_sent'] for r in rows)} goals reached")
+          f"{reached} of {sum(r['goals_sent'] for r in rows)} goals reached ({in_period} "
+          f"within the goal period), {timed_out} unreached at the timeout")
     _drift_checks(rows, check)
     failed = [c["check"] for c in checks if c["ok"] is False]
     return {"passed": not failed, "failed": failed, "checks": checks,
@@ -156,12 +159,31 @@ def _pcts(p: dict) -> str:
     return "/".join(_fmt(p[k], ".0f") for k in ("p50", "p90", "p99", "max"))
 
 
+def goal_lines(records: list[dict]) -> list[str]:
+    """One line per goal sent: when, reached after how long (or how it ended), and the
+    causes of the planner's holds while it was in force."""
+    lines = []
+    for k, r in enumerate(records, 1):
+        ended = (f"reached after {r['reached_after_s']:.2f} s" if r["outcome"] == "reached"
+                 else r["outcome"])
+        holds = "; ".join(f"{n} x {cause}" for cause, n in
+                          sorted(r["holds"].items(), key=lambda kv: -kv[1]))
+        lines.append(f"  {k:3d} {r['goal']} sent at {r['sent_s']:.1f} s: {ended}"
+                     + (f"; holds: {holds}" if holds else ""))
+    return lines
+
+
 def print_report(result: dict) -> None:
     for table in report_tables(result["rows"]):
         print("\n" + table)
+    records = [g for r in result["rows"] for g in r.get("goal_records", [])]
+    if records:
+        print(f"\ngoals ({len(records)}), times from the first window's start:")
+        print("\n".join(goal_lines(records)))
     missed = [why for r in result["rows"] for why in r.get("goals_missed", [])]
     if missed:
-        print(f"\ngoals replaced unreached ({len(missed)}), with what the planner was doing:")
+        print(f"\ngoals unreached at the timeout, truly unreachable ({len(missed)}), with "
+              "what the planner was doing then:")
         for why, count in Counter(missed).most_common():
             print(f"  {count} x {why}")
     v = result["verdict"]

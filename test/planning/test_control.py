@@ -495,3 +495,79 @@ def test_a_stop_that_cannot_be_interpolated_onto_is_joined_not_refused():
         previous = command
     assert np.max(np.abs(previous)) < 1e-3  # settling at the brake's end
     assert np.max(np.abs(q - stop.positions[-1])) < 5e-3
+
+
+def _stop_as_sent(q: np.ndarray, qd: np.ndarray, age_s: float):
+    """A stop as the planner node sends it (`nodes.planner._publish_stop`): the planner's
+    brake from the state measured ``age_s`` ago, held 1 s past now, without its first
+    sample (time 0, the measured state), stamped with the measurement time; the arrays the
+    controller validates, in its joint order."""
+    from damon_ros.planning.graph_planner import BRAKE_LATENCY_S
+    from damon_ros.planning.trajectory import held_until, stop_trajectory
+
+    stop = held_until(stop_trajectory(q, qd, LIM, coast_s=BRAKE_LATENCY_S, dt=0.01),
+                      age_s + 1.0)
+    velocities, accelerations = stop.velocities[1:].copy(), stop.accelerations[1:].copy()
+    velocities[-1] = accelerations[-1] = 0.0  # `_exactly_at_rest`
+    return stop.times[1:], stop.positions[1:], velocities, accelerations
+
+
+@pytest.mark.parametrize("age_ms", [0.5, 2.0, 5.0, 8.0, 30.0])
+def test_a_stop_from_full_speed_near_a_joint_limit_is_accepted_and_keeps_the_limits(age_ms):
+    """The soak's refused stop: joint 7 at its velocity limit 0.3 rad before its position
+    limit, the stop measured ``age_ms`` before it reaches the controller, whose arm is
+    where its (slightly different) command took it. At 2.61 rad/s the brake's first point
+    (10 ms) lies up to 26 mrad ahead of the arm, beyond the join distance, yet only
+    because the arm is moving there: the controller takes it (before: "asks panda_joint7
+    for velocity 2.659"), and every command it then gives keeps the limits."""
+    from damon_ros.planning.follower import validate_trajectory
+
+    q0 = HOME.copy()
+    q0[6] = LIM.upper[6] - 0.3
+    qd = np.array([0.3, -0.2, 0.1, 0.3, -0.1, 0.2, LIM.velocity[6]])
+    u = qd * np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.995])  # the command trails a bit
+    age = 1e-3 * age_ms
+    q_now = q0 + u * age + 2e-4
+    times, positions, velocities, accelerations = _stop_as_sent(q0, qd, age)
+    names = list(LIM.names)
+    assert validate_trajectory(names, names, times, positions, velocities, accelerations,
+                               LIM) is None
+    f = TrajectoryFollower(LIM)
+    plan = f.prepare(times, positions, velocities, accelerations, start_time=10.0 - age,
+                     state=(10.0, q_now, u))
+    f.start(plan)
+    q, previous = q_now.copy(), f.update(10.0, q_now)
+    for k in range(1, 1500):  # the arm moves as commanded; the commands keep the limits
+        command = f.update(10.0 + k * 1e-3, q)
+        assert np.all(np.abs(command) <= LIM.velocity + 1e-9)
+        assert np.all(np.abs(command - previous) <= LIM.acceleration * 1e-3 * (1 + 1e-6))
+        q, previous = q + command * 1e-3, command
+    assert np.max(np.abs(previous)) < 1e-3  # stopped
+    assert np.all(q <= LIM.upper) and np.max(np.abs(q - positions[-1])) < 5e-3
+
+
+def test_brake_from_full_speed_stops_within_the_limits_and_holds():
+    """`TrajectoryFollower.brake` (what the controller does with a trajectory it cannot
+    follow from here): the command falls to zero within the acceleration and jerk limits
+    and the arm then holds where it stopped."""
+    f = TrajectoryFollower(LIM)
+    f.update(0.0, HOME)
+    f.set_trajectory([2.0], [HOME + np.array([0, 0, 0, 0, 0, 0, 2.0])], [np.zeros(7)])
+    q, previous = HOME.copy(), f.update(0.0, HOME)
+    for k in range(1, 800):  # under way, fast
+        q = q + previous * 1e-3
+        previous = f.update(k * 1e-3, q)
+    assert previous[6] > 1.0
+    f.brake()
+    assert f.finished(0.8, q) is False
+    a_prev = np.zeros(7)
+    for k in range(800, 2500):
+        q = q + previous * 1e-3
+        command = f.update(k * 1e-3, q)
+        a = (command - previous) / 1e-3
+        assert np.all(np.abs(command) <= np.abs(previous) + 1e-9)  # only ever slower
+        assert np.all(np.abs(a) <= LIM.acceleration * (1 + 1e-6))
+        assert np.all(np.abs(a - a_prev) <= LIM.jerk * 1e-3 * (1 + 1e-6) + 1e-9)
+        previous, a_prev = command, a
+    assert np.max(np.abs(previous)) < 1e-3 and not f.active
+    assert f.finished(2.5, q)  # holding where it stopped

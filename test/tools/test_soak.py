@@ -28,6 +28,7 @@ def test_short_soak_measures_every_node_and_keeps_the_limits(tmp_path, capsys):
     on 2 cores saturated by the rest of the suite the ground truth arrived at 3 Hz and the
     held arm was hit, a timing result like the rates below."""
     code = soak.main(["--minutes", "0.75", "--window-s", "15", "--goal-period-s", "5",
+                      "--goal-timeout-s", "10",
                       "--startup-s", "10", "--no-camera", "--out", str(tmp_path),
                       "--domain-id", str(next_domain_id(__file__))])
     out = capsys.readouterr().out
@@ -39,7 +40,13 @@ def test_short_soak_measures_every_node_and_keeps_the_limits(tmp_path, capsys):
         assert checks[name]["ok"], (name, out[-6000:])
     assert code == (0 if result["verdict"]["passed"] else 1)
     assert checks["0 contacts"]["ok"] == (sum(r["contacts"] for r in rows) == 0)
-    assert sum(r["goals_sent"] for r in rows) >= 8  # one per 5 s over 45 s
+    # one per 5 s once reached, per 10 s unreached, over 45 s
+    assert sum(r["goals_sent"] for r in rows) >= 4
+    records = [g for r in rows for g in r["goal_records"]]
+    assert len(records) == sum(r["goals_sent"] for r in rows) + 1  # + the warm-up's goal
+    assert [g["outcome"] == "reached" for g in records].count(True) >= \
+        sum(r["goals_reached"] for r in rows)
+    assert "goals (" in out
     for row in rows:
         assert row["violations"] == 0, row
         assert math.isfinite(row["min_clearance_m"]), row  # every window was scored
@@ -154,9 +161,26 @@ def test_report_names_why_goals_were_missed(capsys):
     with patch("damon_ros.tools.soak_report.report_tables", return_value=[]):
         print_report({"rows": rows, "verdict": {"passed": True, "checks": [], "failed": []}})
     out = capsys.readouterr().out
-    assert "goals replaced unreached (3)" in out
+    assert "goals unreached at the timeout, truly unreachable (3)" in out
     assert "2 x C-002: holding: an obstacle blocks the remaining path" in out
     assert "1 x A-001: refused" in out
+
+
+def test_goal_records_name_the_outcome_and_the_hold_causes():
+    from damon_ros.tools.soak_monitor import GoalRecord, hold_cause
+    from damon_ros.tools.soak_report import goal_lines
+
+    cause = hold_cause("red is predicted on the trajectory 0.32 s into it (region grown by "
+                       "0.030 m); no certified route")
+    assert cause == "red is predicted on the trajectory # s into it (region grown by # m)"
+    assert hold_cause("red is predicted on the trajectory 1.5 s into it (region grown by "
+                      "0.1 m)") == cause
+    reached = GoalRecord("C-002", 105.0, 7.25, {cause: 2}, "reached").row(100.0)
+    lines = goal_lines([reached, GoalRecord("A-001", 112.0, outcome="timed out",
+                                            why="A-001: holding").row(100.0)])
+    assert lines[0].strip() == (f"1 C-002 sent at 5.0 s: reached after 7.25 s; holds: "
+                                f"2 x {cause}")
+    assert lines[1].strip() == "2 A-001 sent at 12.0 s: timed out"
 
 
 def test_a_goal_waits_for_a_planner_that_has_a_fresh_joint_state():
