@@ -575,7 +575,8 @@ class GraphPlanner:
         rest of each: the same checks in another order, so the same answer, sooner (a
         delayed start was mostly refused by a stop near where the last one was)."""
         if hint_s is not None:
-            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near")
+            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near",
+                                         describe=False)
             if contact is not None:
                 return contact.time_s
         t = refused_at(self.robot, trajectory.times, trajectory.positions, scene.moving,
@@ -584,11 +585,11 @@ class GraphPlanner:
         if t is not None:
             return t
         contact = self._stop_contact(trajectory, scene, margin, hint_s,
-                                     "all" if hint_s is None else "far")
+                                     "all" if hint_s is None else "far", describe=False)
         return None if contact is None else contact.time_s
 
     def _stop_contact(self, trajectory, scene: Scene, margin: float,
-                      hint_s: float | None = None, part: str = "all"):
+                      hint_s: float | None = None, part: str = "all", describe: bool = True):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -604,7 +605,11 @@ class GraphPlanner:
         model asks every one. ``part``: "all" the stops, or only those from states within
         HINT_WINDOW_S of ``hint_s`` ("near"), or all but those and the rest at the end
         ("far"); "all" with a ``hint_s`` asks the near ones first (a yes/no question: the
-        contact is then not the first in time)."""
+        contact is then not the first in time). ``describe`` False (the yes/no of
+        `_refusal`): a stop the compiled screen finds meeting a mover is not asked again
+        (that re-ask only described the contact), nor is a stop flagged on the statics
+        asked about the movers the screen cleared it of; the contact returned then says
+        only when (the stop's start, obstacle -1)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -618,20 +623,24 @@ class GraphPlanner:
             stops = {"near": stops[near], "far": stops[~near]}.get(
                 part, np.concatenate([stops[near], stops[~near]]))
         j = 0
+        fast = self.robot.collision == "fast"
         while j < len(stops):
-            if self.robot.collision == "fast":
-                j = stops_screen(self.robot, trajectory, stops, j, scene.moving,
-                                 margin + STOP_MARGIN_M, self.config.resolution, p, tau0,
-                                 self.limits, BRAKE_LATENCY_S, statics)[0]
+            what = 0
+            if fast:
+                j, what = stops_screen(self.robot, trajectory, stops, j, scene.moving,
+                                       margin + STOP_MARGIN_M, self.config.resolution, p,
+                                       tau0, self.limits, BRAKE_LATENCY_S, statics)
                 if j < 0:
                     break
             i = int(stops[j])
             j += 1
             q, qd = trajectory.positions[i], trajectory.velocities[i]
+            if what == 1 and not describe:
+                return Contact(float(trajectory.times[i]), -1, q, scene.moving[0][0], 0.0)
             times, states = braking_states(q, qd, self.limits, BRAKE_LATENCY_S)
-            contact = first_contact(self.robot, times, states, scene.moving,
-                                    margin + STOP_MARGIN_M, self.config.resolution, p,
-                                    tau0 + float(trajectory.times[i]))
+            contact = None if what == 2 and not describe else first_contact(
+                self.robot, times, states, scene.moving, margin + STOP_MARGIN_M,
+                self.config.resolution, p, tau0 + float(trajectory.times[i]))
             if contact is not None:
                 return replace(contact, time_s=float(trajectory.times[i]) + contact.time_s)
             if statics and not self.segment_free(q, states[-1], statics, 0.0, exact=False) \
@@ -642,6 +651,12 @@ class GraphPlanner:
             return None
         # the last stop is staying at the end: the arm arrives, then rests there
         end = trajectory.positions[-1]
+        if not describe:
+            t = refused_at(self.robot, np.array([0.0, REST_HORIZON_S]), np.vstack([end, end]),
+                           scene.moving, margin, self.config.resolution, p,
+                           tau0 + float(trajectory.times[-1]))
+            return None if t is None else Contact(float(trajectory.times[-1]) + t, -1, end,
+                                                  scene.moving[0][0], 0.0)
         contact = first_contact(self.robot, np.array([0.0, REST_HORIZON_S]),
                                 np.vstack([end, end]), scene.moving, margin,
                                 self.config.resolution, p, tau0 + float(trajectory.times[-1]))
