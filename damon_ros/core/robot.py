@@ -503,7 +503,8 @@ class Robot:
         known = self._self_free.get(key)
         if known is None:
             n = self.steps(q0, q1, resolution)
-            known = not any(self.self_collision(q0 + s * (q1 - q0))
+            # states between two checked ends: their input check was ~40 % of the time
+            known = not any(self.self_collision(q0 + s * (q1 - q0), checked=False)
                             for s in np.linspace(0.0, 1.0, n + 1))
             if len(self._self_free) >= SELF_FREE_KEPT:
                 self._self_free.clear()

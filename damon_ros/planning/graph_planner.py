@@ -137,6 +137,8 @@ and the arm re-routed 3x as often as with the swept check (stress bench, slow mo
 REST_HORIZON_S = 1.0
 """An arm at rest (holding, or at the end of a stop or an escape) is checked this long
 against the movers' predictions: longer than the hold's retry and a re-route's latency."""
+PULL_ROUNDS = 10
+"""Rounds of the pull toward the neighbours' midpoints that shortens a graph route."""
 CLEARANCES_KEPT = 8
 """(state, obstacle tuple) pairs whose clearance `GraphPlanner.clearance` keeps."""
 
@@ -170,7 +172,8 @@ class _Query:
     START = -1
     GOAL = -2
 
-    def __init__(self, planner: GraphPlanner, q_start, q_goal, scene: Scene):
+    def __init__(self, planner: GraphPlanner, q_start, q_goal, scene: Scene,
+                 prior: _Query | None = None):
         self.p = planner
         self.q_start = q_start
         self.q_goal = q_goal
@@ -178,7 +181,8 @@ class _Query:
         self.start_margin = planner._start_margin(q_start, scene.ahead)
         # the relaxed start margin is for what is already close; the rest keeps λ
         self.start_near, self.start_far = scene.ahead, ()
-        if self.start_margin < planner.config.margin and len(scene.ahead) > 1:
+        self.split = self.start_margin < planner.config.margin and len(scene.ahead) > 1
+        if self.split:
             self.start_near, self.start_far = planner._split_near(q_start, scene.ahead)
         self.valid: dict[tuple[int, int], bool] = {}
         self.search = GraphSearch(*planner.csr) if planner.graph is not None else None
@@ -186,6 +190,44 @@ class _Query:
         self.rejected = 0
         self.iterations = 0
         self.deadline = time.perf_counter() + planner.config.graph_budget()
+        self.order: np.ndarray | None = None  # obstacle nodes nearest first (`_node_order`)
+        self.added: tuple[Shape, ...] = ()  # obstacles beyond the prior query's
+        self.free_before: set[tuple[int, int]] = set()  # certified by the prior query
+        if prior is not None and self._extends(prior):
+            self._inherit(prior)
+
+    def _extends(self, prior: _Query) -> bool:
+        """The same start and goal, the same obstacles now, and the prior query's swept
+        obstacles followed by more: a search around a mover's predicted region."""
+        n = len(prior.scene.ahead)
+        return (prior.p is self.p and prior.scene.now is self.scene.now
+                and len(self.scene.ahead) >= n
+                and all(a is b for a, b in zip(prior.scene.ahead, self.scene.ahead[:n],
+                                               strict=False))
+                and np.array_equal(prior.q_start, self.q_start)
+                and np.array_equal(prior.q_goal, self.q_goal))
+
+    def _inherit(self, prior: _Query) -> None:
+        """What the prior query decided and still holds with more obstacles: a refused
+        segment stays refused (blocked graph edges included); a certified one only needs
+        the added obstacles (`_added_certified`); its obstacle-node order (the start and the
+        obstacles now are the same). A link of the start is taken over only when the start
+        margin's rules are the same (the added region can lower the start margin or split
+        the obstacles into near and far). Without this the search around a mover's region
+        re-checked every edge of the first search: the second search cost as much as the
+        first (family D, 1-7 ms)."""
+        self.order = prior.order
+        self.added = self.scene.ahead[len(prior.scene.ahead):]
+        same_start = self.start_margin == prior.start_margin and self.split == prior.split
+        for key, ok in prior.valid.items():
+            if self.START in key and not same_start:
+                continue
+            if ok:
+                self.free_before.add(key)
+            else:
+                self.valid[key] = False
+        if self.search is not None and prior.search is not None:
+            self.search.blocked[:] = prior.search.blocked
 
     def config(self, v: int) -> np.ndarray:
         if v == self.START:
@@ -199,20 +241,46 @@ class _Query:
         known = self.valid.get(key)
         if known is None:
             q0, q1 = self.config(u), self.config(v)
-            # graph edges on the fast model alone (``band`` off): a refused edge is cheap and
-            # the search has others; the band's mesh queries (up to 64 a segment) had doubled
-            # the lazy search's time on the public scenes. The goal's own segment still goes
-            # to the meshes when only they accept the goal.
-            known = self.segment_certified(q0, q1, first=self.START in key,
-                                           last=self.GOAL in key, band=False)
-            if known and key[0] < 0:  # not a graph edge: self-collision was not verified offline
-                known = self.p.robot.segment_self_collision_free(q0, q1)
+            if key in self.free_before:  # self-collision too was checked then
+                known = self._added_certified(q0, q1, first=self.START in key,
+                                              last=self.GOAL in key)
+            else:
+                # graph edges on the fast model alone (``band`` off): a refused edge is
+                # cheap and the search has others; the band's mesh queries (up to 64 a
+                # segment) had doubled the lazy search's time on the public scenes. The
+                # goal's own segment still goes to the meshes when only they accept it.
+                known = self.segment_certified(q0, q1, first=self.START in key,
+                                               last=self.GOAL in key, band=False)
+                if known and key[0] < 0:  # not a graph edge: self-collision not verified
+                    known = self.p.robot.segment_self_collision_free(q0, q1)
             self.valid[key] = known
             self.checked += 1
             self.rejected += not known
             if not known and key[0] >= 0:
                 self.search.block(*key)
         return known
+
+    def _added_certified(self, q0: np.ndarray, q1: np.ndarray, first: bool,
+                         last: bool) -> bool:
+        """`segment_certified` (graph-edge rules: fast model, no band) of a segment the
+        prior query certified against its obstacles: the added obstacles alone, each with
+        the margin `segment_certified` gives it (the fast model's answer for a set of
+        obstacles is its answer for each). A goal segment it refuses goes to the meshes
+        against every obstacle, as there."""
+        margin = self.start_margin if first else self.p.config.margin
+        groups = [(self.added, margin)]
+        if first and self.start_far:
+            near = {id(o) for o in self.start_near}
+            groups = [(tuple(o for o in self.added if id(o) in near), margin),
+                      (tuple(o for o in self.added if id(o) not in near),
+                       self.p.config.margin)]
+        free = all(not group or self.p.segment_free(q0, q1, group, m, False)
+                   for group, m in groups)
+        if not free and last and self.p.goal_exact:
+            free = self.p.exact.segment_free(q0, q1, self.scene.ahead,
+                                             margin=self.p.config.exact_goal_margin,
+                                             resolution=self.p.config.resolution)
+        return free
 
     def link_weight(self, u: int, v: int, w: float) -> float:
         """``w`` for a start or goal link not known to be blocked; inf for one that is."""
@@ -268,6 +336,9 @@ class GraphPlanner:
         self._fallback_failures = 0  # toward the current goal: escalates the budget
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
         self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
+        # during `_route_in_time`: {"query": the last route search's `_Query`}, which a
+        # search around a mover's predicted region extends (`_Query._inherit`); else None
+        self._reuse: dict | None = None
 
     @property
     def exact(self):
@@ -444,9 +515,18 @@ class GraphPlanner:
         trajectory still refused is not returned (the caller holds and retries). Margin: λ,
         or the start margin when something is already closer (as for a first segment). A
         scene without movers costs nothing here."""
-        result = self._route_moving(q_start, qd_start, q_goal, scene)
         if not scene.moving:
-            return result
+            return self._route_moving(q_start, qd_start, q_goal, scene)
+        self._reuse = {}
+        try:
+            return self._route_around_movers(q_start, qd_start, q_goal, scene)
+        finally:
+            self._reuse = None
+
+    def _route_around_movers(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
+        """`_route_in_time` for a scene with movers; a search around a predicted region
+        takes over what the search before it decided (`self._reuse`)."""
+        result = self._route_moving(q_start, qd_start, q_goal, scene)
         t0 = time.perf_counter()
         margin = self._mover_margin(q_start, scene)
         at_rest = qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S
@@ -497,7 +577,8 @@ class GraphPlanner:
         rest of each: the same checks in another order, so the same answer, sooner (a
         delayed start was mostly refused by a stop near where the last one was)."""
         if hint_s is not None:
-            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near")
+            contact = self._stop_contact(trajectory, scene, margin, hint_s, "near",
+                                         describe=False)
             if contact is not None:
                 return contact.time_s
         t = refused_at(self.robot, trajectory.times, trajectory.positions, scene.moving,
@@ -506,11 +587,11 @@ class GraphPlanner:
         if t is not None:
             return t
         contact = self._stop_contact(trajectory, scene, margin, hint_s,
-                                     "all" if hint_s is None else "far")
+                                     "all" if hint_s is None else "far", describe=False)
         return None if contact is None else contact.time_s
 
     def _stop_contact(self, trajectory, scene: Scene, margin: float,
-                      hint_s: float | None = None, part: str = "all"):
+                      hint_s: float | None = None, part: str = "all", describe: bool = True):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -526,7 +607,11 @@ class GraphPlanner:
         model asks every one. ``part``: "all" the stops, or only those from states within
         HINT_WINDOW_S of ``hint_s`` ("near"), or all but those and the rest at the end
         ("far"); "all" with a ``hint_s`` asks the near ones first (a yes/no question: the
-        contact is then not the first in time)."""
+        contact is then not the first in time). ``describe`` False (the yes/no of
+        `_refusal`): a stop the compiled screen finds meeting a mover is not asked again
+        (that re-ask only described the contact), nor is a stop flagged on the statics
+        asked about the movers the screen cleared it of; the contact returned then says
+        only when (the stop's start, obstacle -1)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -540,20 +625,24 @@ class GraphPlanner:
             stops = {"near": stops[near], "far": stops[~near]}.get(
                 part, np.concatenate([stops[near], stops[~near]]))
         j = 0
+        fast = self.robot.collision == "fast"
         while j < len(stops):
-            if self.robot.collision == "fast":
-                j = stops_screen(self.robot, trajectory, stops, j, scene.moving,
-                                 margin + STOP_MARGIN_M, self.config.resolution, p, tau0,
-                                 self.limits, BRAKE_LATENCY_S, statics)[0]
+            what = 0
+            if fast:
+                j, what = stops_screen(self.robot, trajectory, stops, j, scene.moving,
+                                       margin + STOP_MARGIN_M, self.config.resolution, p,
+                                       tau0, self.limits, BRAKE_LATENCY_S, statics)
                 if j < 0:
                     break
             i = int(stops[j])
             j += 1
             q, qd = trajectory.positions[i], trajectory.velocities[i]
+            if what == 1 and not describe:
+                return Contact(float(trajectory.times[i]), -1, q, scene.moving[0][0], 0.0)
             times, states = braking_states(q, qd, self.limits, BRAKE_LATENCY_S)
-            contact = first_contact(self.robot, times, states, scene.moving,
-                                    margin + STOP_MARGIN_M, self.config.resolution, p,
-                                    tau0 + float(trajectory.times[i]))
+            contact = None if what == 2 and not describe else first_contact(
+                self.robot, times, states, scene.moving, margin + STOP_MARGIN_M,
+                self.config.resolution, p, tau0 + float(trajectory.times[i]))
             if contact is not None:
                 return replace(contact, time_s=float(trajectory.times[i]) + contact.time_s)
             if statics and not self.segment_free(q, states[-1], statics, 0.0, exact=False) \
@@ -564,6 +653,12 @@ class GraphPlanner:
             return None
         # the last stop is staying at the end: the arm arrives, then rests there
         end = trajectory.positions[-1]
+        if not describe:
+            t = refused_at(self.robot, np.array([0.0, REST_HORIZON_S]), np.vstack([end, end]),
+                           scene.moving, margin, self.config.resolution, p,
+                           tau0 + float(trajectory.times[-1]))
+            return None if t is None else Contact(float(trajectory.times[-1]) + t, -1, end,
+                                                  scene.moving[0][0], 0.0)
         contact = first_contact(self.robot, np.array([0.0, REST_HORIZON_S]),
                                 np.vstack([end, end]), scene.moving, margin,
                                 self.config.resolution, p, tau0 + float(trajectory.times[-1]))
@@ -712,8 +807,11 @@ class GraphPlanner:
         if result.success:
             # the trajectory starts from the measured position *and velocity*: the brake
             # along the line (certified above), then the route from where it ends at rest
+            # (the route's own trajectory is the timing of its path: not timed twice)
+            route = result.trajectory if result.trajectory is not None else \
+                self._time_parameterize(result.path)
             result.path = np.vstack([q_start[None], result.path])
-            result.trajectory = concatenate(brake, self._time_parameterize(result.path[1:]))
+            result.trajectory = concatenate(brake, route)
         return result
 
     def _route_to_goal(self, q_start, q_goal, scene: Scene) -> PlanResult:
@@ -791,13 +889,19 @@ class GraphPlanner:
 
     def _route(self, q_start, q_goal, scene: Scene) -> PlanResult:
         t0 = time.perf_counter()
-        query = _Query(self, q_start, q_goal, scene)
+        reuse = self._reuse
+        query = _Query(self, q_start, q_goal, scene, None if reuse is None else reuse.get(
+            "query"))
+        if reuse is not None:
+            reuse["query"] = query
         path = self._from_experience(query)
         if path is not None:  # the same blockage as before: no graph search first
             return PlanResult(True, "", path=path, trajectory=self._time_parameterize(path),
                               goal_q=q_goal, edges_checked=query.checked, source="experience",
                               timing_ms={"search": 1e3 * (time.perf_counter() - t0)})
-        order = self._node_order(q_start, scene.now)
+        order = query.order
+        if order is None:
+            order = query.order = self._node_order(q_start, scene.now)
         path_ids, searched = None, 0
         for width in self.config.widen:
             searched = len(order) if width == 0 else min(width, len(order))
@@ -826,7 +930,7 @@ class GraphPlanner:
         else:
             path = np.array([query.config(v) for v in path_ids])
             if self.config.shortcut:
-                path = self._shortcut(path, query)
+                path = self._graph_shortened(path, query)
             result.success, result.path = True, path
             result.trajectory = self._time_parameterize(path)
         t_end = time.perf_counter()
@@ -895,6 +999,23 @@ class GraphPlanner:
                            self.limits.lower, self.limits.upper, obstacles, margin,
                            (query.start_margin, goal_margin), self.config.resolution,
                            budget, seed=seed)
+
+    def _graph_shortened(self, path: np.ndarray, query: _Query) -> np.ndarray:
+        """A graph route (each edge certified) shortened. On the fast model the compiled
+        shortcut first (`path_shortcutting`, as many pull rounds as `_pull_tight`), its
+        result kept when it is certified as a whole (`_certified`: self-collision, the
+        start's near and far margins, a goal only the meshes accept); else `_shortcut`,
+        which certifies each segment as it goes. In Python the pull toward the midpoints
+        was a quarter of the slowest re-plans' time (family D: up to 5 ms a route)."""
+        if self.robot.collision == "fast":
+            from damon_ros.planning.path_shortcutting import shortcut
+
+            short = shortcut(self.robot.spheres, path, query.scene.ahead, query.start_margin,
+                             self.config.margin, self.config.resolution, self.limits.lower,
+                             self.limits.upper, rounds=PULL_ROUNDS)
+            if self._certified(short, query):
+                return short
+        return self._shortcut(path, query)
 
     def _shortened(self, path: np.ndarray, query: _Query) -> np.ndarray | None:
         """A sampled route shortened and certified, or None when it fails certification.
@@ -999,7 +1120,7 @@ class GraphPlanner:
             i = j
         return self._pull_tight(path[keep], query)
 
-    def _pull_tight(self, path: np.ndarray, query: _Query, rounds: int = 10,
+    def _pull_tight(self, path: np.ndarray, query: _Query, rounds: int = PULL_ROUNDS,
                     fractions: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1)) -> np.ndarray:
         """Pull each interior waypoint toward the midpoint of its neighbours — as far as its
         two segments stay certified (the largest of ``fractions`` that works) — for a few

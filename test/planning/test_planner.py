@@ -10,7 +10,7 @@ from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.bundle import DamonModel
-from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal
+from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal, Scene, _Query
 from damon_ros.planning.reactive import ReactivePlanner, swept
 from damon_ros.simulation.closed_loop import pose_goal
 
@@ -212,3 +212,21 @@ def test_braking_points_and_escape_candidates_stay_off_the_joint_limits(planner)
     assert stop[0] < lim.upper[0] and stop[0] == pytest.approx(lim.upper[0] - 0.02)
     far = planner.inside_limits(np.full(7, 100.0))
     assert np.all(far < lim.upper) and np.all(planner.inside_limits(-far) > lim.lower)
+
+
+def test_a_graph_route_is_shortened_only_into_a_certified_path(planner, monkeypatch):
+    """The compiled shortcut's result is kept only when certified as a whole (self-collision
+    and the start's margins included); refused, the route is shortened segment by segment
+    (`_shortcut`, each segment certified as it goes)."""
+    scenario = next(s for s in SCENARIOS if s.family == "A")
+    obstacles = tuple(scenario.obstacles_at(0.0))
+    q_goal, _ = planner.resolve_goal(pose_goal(scenario), scenario.start, obstacles)
+    query = _Query(planner, scenario.start, q_goal, Scene.of(obstacles))
+    ids = planner._lazy_astar(query, planner.graph.safe.copy())
+    raw = np.array([query.config(v) for v in ids])
+    assert len(raw) > 2
+    short = planner._graph_shortened(raw, query)
+    assert planner._certified(short, query) and len(short) <= len(raw)
+    assert np.array_equal(short[[0, -1]], raw[[0, -1]])
+    monkeypatch.setattr(planner, "_certified", lambda path, query: False)
+    assert np.array_equal(planner._graph_shortened(raw, query), planner._shortcut(raw, query))

@@ -201,3 +201,43 @@ def test_a_refusal_asked_near_a_hint_answers_as_the_first_contact(fast):
             assert t is None or t >= first.time_s
         answers.add(first is None)
     assert answers == {True, False}
+
+
+def test_a_search_around_a_region_decides_every_edge_as_a_fresh_one(planner, fast):
+    """The search around a mover's predicted region takes over the first search's edge
+    decisions (`_Query._inherit`): for graph edges and the start's and goal's links alike,
+    with a region far from the start and one closer than anything was (the start margin
+    drops: links the first search refused may pass now), every answer is the one a fresh
+    query with all the obstacles gives."""
+    q0, q1 = _long_move()
+    states = q0 + np.linspace(0, 1, 111)[:, None] * (q1 - q0)
+    tcp0, _ = fast.tcp_pose(q0)
+    ahead = fast.tcp_pose(states[1])[0] - tcp0
+    ahead /= np.linalg.norm(ahead)
+    side = np.cross(ahead, [0.0, 0.0, 1.0])
+    near = _sphere_at_distance(fast, q0[None], tcp0 + 0.15 * side / np.linalg.norm(side),
+                               0.012, "near")
+    box = Shape("box", (0.2, 0.2, 0.2), np.array([0.45, -0.35, 0.35]), name="box")
+    scene = Scene((box, near), (box, near))
+    start, goal = graph_planner._Query.START, graph_planner._Query.GOAL
+    closest = np.argsort(np.linalg.norm(planner.graph.q - q0, axis=1))[:200]
+    edges = [(start, int(v)) for v in closest] + [(start, goal)] + [
+        (v, goal) for v, _ in planner._attach(q1, np.arange(planner.graph.n_vertices))]
+    for u in np.random.default_rng(3).choice(planner.graph.n_vertices, 40, replace=False):
+        lo, hi = planner.graph.indptr[u], planner.graph.indptr[u + 1]
+        edges += [(int(u), int(v)) for v in planner.graph.indices[lo:hi][:3]]
+    mid, _ = fast.tcp_pose(states[55])
+    regions = (Shape("sphere", (0.12,), mid, name="far region"),
+               _sphere_at_distance(fast, q0[None], tcp0 - 0.15 * ahead, 0.004, "closer"))
+    for region in regions:
+        prior = graph_planner._Query(planner, q0, q1, scene)
+        decided = [prior.edge_free(u, v) for u, v in edges]
+        around = replace(scene, ahead=(*scene.ahead, region))
+        reused = graph_planner._Query(planner, q0, q1, around, prior)
+        fresh = graph_planner._Query(planner, q0, q1, around)
+        assert reused.added == (region,) and reused.free_before
+        answers = [reused.edge_free(u, v) for u, v in edges]
+        assert answers == [fresh.edge_free(u, v) for u, v in edges]
+        assert answers != decided  # the region mattered
+        assert np.array_equal(reused.search.blocked, fresh.search.blocked)
+    assert any(not d and a for d, a in zip(decided, answers, strict=True))  # a lower margin
