@@ -100,6 +100,15 @@ def _moved_out(planes: np.ndarray, grow) -> np.ndarray:
     return hs
 
 
+def _overlap(shapes: list[Shape], slack: Sequence, planes=halfspaces) -> bool:
+    """Whether the bounds (grown by ``slack``) overlap, as `intersect` decides it, without
+    making their polytope (grouping only needs the answer; the polytope is made when the
+    object's bound is, and not at all when a joint fit gives it)."""
+    hs = np.vstack([_moved_out(planes(s), g) for s, g in zip(shapes, slack, strict=True)])
+    centres = [s.position for s in shapes]
+    return _interior(hs, [*centres, np.mean(centres, axis=0)]) is not None
+
+
 def intersect(shapes: list[Shape], name: str = "", slack: Sequence | None = None,
               planes=halfspaces) -> Shape | None:
     """The convex intersection of several bounds of one object as a point set, or None
@@ -159,7 +168,7 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     planes = _Planes()
     groups: list[list[tuple[Shape, bool, float]]] = []
     members: list[list[tuple[int, int]]] = []
-    pairs: dict[tuple[int, int, int], Shape] = {}  # (group, camera, index): its first & it
+    pairs: dict[tuple[int, int, int], tuple] = {}  # (group, camera, index): its first & it
     for c, (detections, grow) in enumerate(zip(views, slack, strict=True)):
         taken: set[int] = set()
         for i, (shape, partial) in enumerate(detections):
@@ -171,10 +180,9 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
                 d = float(np.linalg.norm(first.position - shape.position))
                 if d > best_d and not (partial or first_partial):
                     continue  # (a cut-off view's centre says little: overlap decides)
-                pair = intersect([first, shape], slack=[first_grow, grow], planes=planes)
-                if pair is not None:
+                if _overlap([first, shape], [first_grow, grow], planes):
                     best, best_d = g, d
-                    pairs[(g, c, i)] = pair
+                    pairs[(g, c, i)] = (first, shape, first_grow, grow)  # made if needed
             if best is None:
                 if anchored and c > 0:
                     continue
@@ -196,8 +204,10 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
         # two views of the same status: their intersection was found while grouping
         unchanged = len(checked) == 2 and all(
             np.ndim(c[2]) == 0 and c[2] == x[2] for c, x in zip(checked, group, strict=False))
-        pair = (pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1]
-                and unchanged else None)
+        found = (pairs.get((g, *m[1])) if len(m) == 2 and group[0][1] == group[1][1]
+                 and unchanged else None)
+        pair = None if found is None else intersect(
+            [found[0], found[1]], slack=[found[2], found[3]], planes=planes)
         motion = {id(shape): grow for shape, _, grow in group}
         out.append((*_fused(checked, pair, planes, motion), m))
     return out
