@@ -276,6 +276,28 @@ def test_empty_trajectory_is_refused_and_a_hold_trajectory_stops(arm: Arm):
     assert np.max(np.abs(arm.q() - q_stop)) < 2e-3  # and holds there
 
 
+def test_a_trajectory_that_cannot_be_followed_from_here_stops_the_arm(arm: Arm):
+    """Well formed but not followable from the arm's state (0.3 rad in 50 ms): refused
+    with a line, and unlike the JTC the arm brakes and holds instead of going on with the
+    old motion, for the refused one may have been a stop (a soak arm went on)."""
+    assert arm.settle()
+    q0 = arm.q()
+    step = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    goal = q0 + 0.8 * step
+    arm.trajectories.publish(trajectory([2.0, 60.0], [q0 + 0.1 * step, goal],
+                                        [0.015 * step, np.zeros(7)]))
+    assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.02, 5.0), arm.logs()
+    before = len(rosutil.log_lines(arm.controller, "braking to a stop"))
+    arm.trajectories.publish(trajectory([0.05], [arm.q() - 0.3 * step], [np.zeros(7)]))
+    assert arm.ros.spin_until(lambda: len(rosutil.log_lines(
+        arm.controller, "braking to a stop")) > before, 5.0), arm.logs()
+    assert arm.settle(), arm.logs()
+    q_stop = arm.q()
+    assert q0[0] + 0.02 < q_stop[0] < goal[0] - 0.2  # stopped on the way, not jumped back
+    arm.ros.spin_for(0.5)
+    assert np.max(np.abs(arm.q() - q_stop)) < 2e-3  # and holds there
+
+
 def _last_before_silence(ros: rosutil.RosClient, recorder: rosutil.Recorder,
                          quiet_s: float = 0.3, timeout_s: float = 10.0) -> float:
     """Publication time of the last message of a stream that has stopped.
