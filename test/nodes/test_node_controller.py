@@ -249,19 +249,26 @@ def _hold_here(arm: Arm) -> JointTrajectory:
     return trajectory([0.0], [arm.q()], [np.zeros(7)])
 
 
-def test_empty_trajectory_is_refused_and_a_hold_trajectory_stops(arm: Arm):
-    """JTC semantics: an empty trajectory is rejected with a line and the motion goes on;
-    a one-point trajectory at the current position stops the arm and holds it."""
+def _under_way(arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(start, direction, goal) of a slow move of joint 1, once the arm is under way.
+
+    Under way within 2 s, then slowly on for 58 s (15 mrad/s): a busy test process reads
+    states late, and its stop must still land well before the end (in CI a 3 s trajectory
+    had ended before the stop arrived; here the hold came 15 s after the empty one)."""
     assert arm.settle()
     q0 = arm.q()
     step = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     goal = q0 + 0.8 * step
-    # Under way within 2 s, then slowly on for 58 s (15 mrad/s): a busy test process reads
-    # states late, and its stop must still land well before the end (in CI a 3 s trajectory
-    # had ended before the stop arrived; here the hold came 15 s after the empty one).
     arm.trajectories.publish(trajectory([2.0, 60.0], [q0 + 0.1 * step, goal],
                                         [0.015 * step, np.zeros(7)]))
     assert arm.ros.spin_until(lambda: arm.q()[0] > q0[0] + 0.02, 5.0), arm.logs()
+    return q0, step, goal
+
+
+def test_empty_trajectory_is_refused_and_a_hold_trajectory_stops(arm: Arm):
+    """JTC semantics: an empty trajectory is rejected with a line and the motion goes on;
+    a one-point trajectory at the current position stops the arm and holds it."""
+    q0, step, goal = _under_way(arm)
     before = len(rosutil.log_lines(arm.controller, "rejected trajectory of 0 points"))
     arm.trajectories.publish(JointTrajectory(joint_names=NAMES))  # no points: refused
     assert arm.ros.spin_until(lambda: len(rosutil.log_lines(
@@ -272,6 +279,22 @@ def test_empty_trajectory_is_refused_and_a_hold_trajectory_stops(arm: Arm):
     assert arm.settle(), arm.logs()
     q_stop = arm.q()
     assert q0[0] + 0.02 < q_stop[0] < goal[0] - 0.2  # stopped on the way
+    arm.ros.spin_for(0.5)
+    assert np.max(np.abs(arm.q() - q_stop)) < 2e-3  # and holds there
+
+
+def test_a_trajectory_that_cannot_be_followed_from_here_stops_the_arm(arm: Arm):
+    """Well formed but not followable from the arm's state (0.3 rad in 50 ms): refused
+    with a line, and unlike the JTC the arm brakes and holds instead of going on with the
+    old motion, for the refused one may have been a stop (a soak arm went on)."""
+    q0, step, goal = _under_way(arm)
+    before = len(rosutil.log_lines(arm.controller, "braking to a stop"))
+    arm.trajectories.publish(trajectory([0.05], [arm.q() - 0.3 * step], [np.zeros(7)]))
+    assert arm.ros.spin_until(lambda: len(rosutil.log_lines(
+        arm.controller, "braking to a stop")) > before, 5.0), arm.logs()
+    assert arm.settle(), arm.logs()
+    q_stop = arm.q()
+    assert q0[0] + 0.02 < q_stop[0] < goal[0] - 0.2  # stopped on the way, not jumped back
     arm.ros.spin_for(0.5)
     assert np.max(np.abs(arm.q() - q_stop)) < 2e-3  # and holds there
 
