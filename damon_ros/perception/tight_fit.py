@@ -168,6 +168,8 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
         return None
     margin_face = config.surface_margin_m
     seen, hidden = [], []
+    # how each end of each horizontal axis is bounded (`_skewed`): "face", "corner", "prior"
+    ends_by = [["prior", "prior"] for _ in range(2)]
     # a visible face is its fitted plane, not its farthest noisy point (~3 sigma of depth
     # noise beyond it on each face, ~6 mm a face): the plane bounds it (plane-bounded faces)
     low, high = _face_planes(local, near_low, near_high, visible, low, high, tol)
@@ -184,10 +186,13 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
             # (several cameras: each one's silhouette bounds the object, the tightest holds)
             ends = [_silhouette(per_view, local[:, k], k, sign, others)
                     if not visible[k, side] else None for side, sign in ((0, -1), (1, 1))]
-            if any(e is not None and not math.isfinite(e) for e in ends):
+            if any(e is not None and not math.isfinite(e[0]) for e in ends):
                 return None  # only cut views show that silhouette
-            lo[k] = lo[k] - margin_face if ends[0] is None else ends[0] - margin_face
-            hi[k] = hi[k] + margin_face if ends[1] is None else ends[1] + margin_face
+            lo[k] = lo[k] - margin_face if ends[0] is None else ends[0][0] - margin_face
+            hi[k] = hi[k] + margin_face if ends[1] is None else ends[1][0] + margin_face
+            if k < 2:
+                ends_by[k] = ["face" if e is None else "corner" if e[1] else "prior"
+                              for e in ends]
             seen.append(True)
             hidden.append(0.0)
             continue
@@ -205,14 +210,45 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
             return None
         seen.append(False)
         hidden.append(extra)
-    # The corners far along one horizontal axis move across the other by the yaw error.
-    skew = error * (hi - lo)[[1, 0]]
-    lo[:2] -= skew
-    hi[:2] += skew
+    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, error)
     centre = axes @ (0.5 * (lo + hi))
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def _skewed(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray, lo: np.ndarray,
+            hi: np.ndarray, ends_by: list[list[str]],
+            error: float) -> tuple[np.ndarray, np.ndarray]:
+    """``lo`` and ``hi`` grown across each horizontal axis by what a yaw ``error`` of the
+    box's frame moves the true corners beyond each end (``ends_by[k][side]``, `fit_box_seen`):
+
+    * ``"face"``, a fitted face plane: a face turned by the error crosses its plane (the
+      median of its points) where the median of its points along the other axis lies, so
+      its ends stand out by the error times the farther end's distance from there (half
+      the other extent for a face seen evenly; all of it for one seen at one end only);
+    * ``"corner"``, a silhouette from a camera that saw the top (or bottom) face whole: the
+      footprint's corners are among its samples, in this frame, so the extreme of the
+      samples already bounds them (the edge margin covers the last sample spacing);
+    * ``"prior"``, anything else (a face extended by the class prior, a silhouette seen only
+      from the side, where a back corner hides behind the front one): the error times the
+      whole other extent."""
+    lo, hi = lo.copy(), hi.copy()
+    for k in range(2):
+        j = 1 - k
+        extent = float(hi[j] - lo[j])
+        grow = []
+        for side, near in ((0, near_low), (1, near_high)):
+            how = ends_by[k][side]
+            if how == "face":
+                along = local[near[:, k], j]
+                middle = min(max(_median(along), float(lo[j])), float(hi[j]))
+                grow.append(error * max(float(hi[j]) - middle, middle - float(lo[j])))
+            else:
+                grow.append(0.0 if how == "corner" else error * extent)
+        lo[k] -= grow[0]
+        hi[k] += grow[1]
+    return lo, hi
 
 
 class _BoxView:
@@ -240,29 +276,33 @@ class _BoxView:
 
 
 def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
-                others: list[int]) -> float:
+                others: list[int]) -> tuple[float, bool]:
     """Where the box ends at the ``sign`` end of axis ``k`` when no face there is seen: a
     sample spacing (`_edge`) beyond the last point of a camera that sees a face spanning
     the axis, the tightest of these cameras (each whole silhouette bounds the object), never
-    inside a point any camera saw; infinite when only cut-off views could bound it."""
+    inside a point any camera saw; infinite when only cut-off views could bound it. And
+    whether that camera saw the top or bottom face (its samples then reach the footprint's
+    corners: `_skewed`)."""
     extreme = float(np.max(sign * along))
     bounds = []
     for w in views:
         spans = [j for j in range(3) if j != k and w.visible[j].any()]
         if spans and w.whole and np.any(w.mask):
             mine = along[w.mask]
-            bounds.append(float(np.max(sign * mine))
-                          + _edge(w.cosines, mine, spans, w.delta, sign))
+            bounds.append((float(np.max(sign * mine))
+                           + _edge(w.cosines, mine, spans, w.delta, sign),
+                           bool(w.visible[2].any())))
     if not bounds and not all(w.whole for w in views):
-        return sign * math.inf
+        return sign * math.inf, False
     if not bounds:  # no single camera saw a spanning face: all of them together did
         both = np.vstack([w.cosines for w in views])
         order = np.concatenate([np.flatnonzero(w.mask) for w in views])
         cosines = np.empty_like(both)
         cosines[order] = both
-        bounds.append(extreme + _edge(cosines, along, others, max(w.delta for w in views),
-                                      sign))
-    return sign * max(min(bounds), extreme)
+        bounds.append((extreme + _edge(cosines, along, others,
+                                       max(w.delta for w in views), sign), False))
+    bound, corner = min(bounds)
+    return sign * max(bound, extreme), corner
 
 
 def _median(values: np.ndarray) -> float:

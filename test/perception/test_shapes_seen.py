@@ -484,3 +484,40 @@ def test_a_tilted_box_is_not_taken_for_an_upright_one(tilt_deg, upright):
     seen = points[facing & (np.abs(normals).sum(axis=1) == 1)]
     seen = seen + rng.normal(0.0, 0.001, seen.shape)
     assert (fit_box(CAMERA, seen, CONFIG) is not None) == upright
+
+
+def _facing_samples(box: Shape, eye: np.ndarray, rng) -> np.ndarray:
+    """Noisy samples of the faces of ``box`` that face a camera at ``eye`` (no edges)."""
+    points = shapes.surface_samples(box, 0.004)
+    local = (points - box.position) @ box.rotation()
+    normals = np.where(np.isclose(np.abs(local), 0.5 * np.asarray(box.size)), np.sign(local), 0)
+    facing = ((normals @ box.rotation().T) * (eye - points)).sum(axis=1) > 1e-9
+    seen = points[facing & (np.abs(normals).sum(axis=1) == 1)]
+    return seen + rng.normal(0.0, 0.0005, seen.shape)
+
+
+@pytest.mark.parametrize("yaw_deg", [20.0, -30.0])
+@pytest.mark.parametrize("error", [-0.04, 0.04])
+def test_a_box_fitted_in_a_frame_off_by_the_yaw_allowance_still_contains_the_box(
+        monkeypatch, yaw_deg, error):
+    """The yaw of a box's frame is known to `YAW_ERROR_RAD`; each end of the bound is grown
+    by what that error moves the corners beyond it: half the other extent at a face seen
+    evenly, nothing at a silhouette of a camera that saw the top face (its corners are
+    samples). Here the fitted yaw is forced off by nearly a (raised) allowance, large enough
+    that the edge margins cannot hide a missing growth: the box must still be contained."""
+    from damon_ros.perception import tight_fit
+
+    allowance = abs(error) / 0.9
+    monkeypatch.setattr(tight_fit, "YAW_ERROR_RAD", allowance)
+    monkeypatch.setattr(tight_fit, "MAX_YAW_ERROR_RAD", allowance)
+    face_yaw = tight_fit._face_yaw
+    monkeypatch.setattr(tight_fit, "_face_yaw",
+                        lambda *a: (face_yaw(*a)[0] + error, face_yaw(*a)[1]))
+    half = np.radians(yaw_deg) / 2
+    box = Shape("box", (0.10, 0.24, 0.16), np.array([0.55, 0.05, 0.45]),
+                np.array([0.0, 0.0, np.sin(half), np.cos(half)]))
+    eye = np.array([2.5, 0.0, 1.1])
+    fit = tight_fit.fit_box(_look_at(eye, box.position), _facing_samples(
+        box, eye, np.random.default_rng(0)), CONFIG)
+    assert fit is not None and all(fit.seen)
+    assert _inside(fit.shape, [box]) == 1.0
