@@ -94,6 +94,8 @@ PARAMETERS = (
           "between two checked instants (m)", 0.001, 0.1),
     Param("prediction_moving_speed_m_s", 0.05, "obstacles reported slower are static "
           "(m/s; above a still box's velocity jitter)", 0.0, 1.0),
+    Param("resting_buffer_m", 0.05, "a new goal's route keeps this much more from balls at "
+          "rest (m; one may start to roll; dropped when no route keeps it)", 0.0, 0.5),
     Param("monitor_rate_hz", 20.0, "fixed-rate re-check of the remaining path (Hz)",
           0.5, 1000.0),
     Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
@@ -180,6 +182,7 @@ class PlannerNode(Node):
             prediction_horizon_s=p["prediction_horizon_s"],
             perception_timeout_s=p["perception_timeout_s"],
             goal_wait_s=p["goal_wait_timeout_s"],
+            resting_buffer_m=p["resting_buffer_m"],
             obstacle_source=self.resolve_topic_name(topics.OBSTACLES)),
             risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes),
             on_threat=lambda why: self._publish_stop())

@@ -63,6 +63,28 @@ def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
     return Shape(shape.kind, size, center, shape.orientation, name=shape.name)
 
 
+def resting_buffered(obstacles: Sequence[tuple[Shape, np.ndarray]], buffer_m: float,
+                     moving_speed_m_s: float) -> Sequence[tuple[Shape, np.ndarray]]:
+    """``obstacles`` with every ball at rest (reported slower than ``moving_speed_m_s``, as
+    the space-time check's movers are told apart) grown by ``buffer_m``; the list itself
+    when there is none, or no buffer.
+
+    Why: a ball at rest may start to roll or fall at any moment, and one that starts toward
+    an arm passing it a few centimetres away reaches it before its motion is even reported
+    (diving balls at 0.3 m/s met routes planned 1-3 cm past them while they rested: seed
+    1301, family G). The arm's brake takes ~0.15 s, in which a ball at the generated movers'
+    0.35 m/s covers 5 cm: a route that keeps that much more from a resting ball leaves the
+    time. Only a new goal's route is planned with the buffer (and without it when that
+    fails): a re-route is urgent, and the path checks use the shapes as they are."""
+    def resting(shape: Shape, velocity: np.ndarray) -> bool:
+        return shape.kind == "sphere" and float(np.linalg.norm(velocity)) < moving_speed_m_s
+
+    if buffer_m <= 0.0 or not any(resting(s, v) for s, v in obstacles):
+        return obstacles
+    return [(Shape("sphere", (s.size[0] + buffer_m,), s.position, s.orientation, name=s.name),
+             v) if resting(s, v) else (s, v) for s, v in obstacles]
+
+
 def _age(perception_age_s: float) -> float:
     """The age of obstacle data for the prediction (an unknown age, inf, counts as none:
     the prediction's own minimum age applies)."""
@@ -154,6 +176,7 @@ class RuntimeConfig:
     goal_wait_s: float = 5.0  # a goal waiting for obstacle data is dropped after this long
     obstacle_source: str = "the obstacle topic"  # named in the waiting goal's message
     space_time: bool = True  # timed trajectories checked against the movers' predictions
+    resting_buffer_m: float = 0.05  # a new goal's route keeps this much more from balls at rest
 
 
 @dataclass
@@ -229,8 +252,12 @@ class ReactivePlanner:
                 "(goal_wait_timeout_s)")
         self.pending_goal = None
         t0 = time.perf_counter()
-        result = self.planner.plan(q_now, goal, self.scene(obstacles, _age(perception_age_s)),
-                                   qd_start=qd_now)
+        age = _age(perception_age_s)
+        buffered = resting_buffered(obstacles, self.config.resting_buffer_m,
+                                    self.planner.config.prediction.moving_speed_m_s)
+        result = self.planner.plan(q_now, goal, self.scene(buffered, age), qd_start=qd_now)
+        if not result.success and buffered is not obstacles:
+            result = self.planner.plan(q_now, goal, self.scene(obstacles, age), qd_start=qd_now)
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)

@@ -52,7 +52,7 @@ moving obstacles, and closes grasp goals the data set places 8-30 mm from an obj
 
 def make_runtime(name: str, model, fast, seed: int, solve_time: float,
                  margin: float | None = None, fallback_s: float | None = None,
-                 space_time: bool = True):
+                 space_time: bool = True, resting_buffer_m: float | None = None):
     from dataclasses import replace
 
     from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
@@ -74,7 +74,11 @@ def make_runtime(name: str, model, fast, seed: int, solve_time: float,
         settings = planner.settings()
     planner.warm_up()
     settings["space_time"] = space_time
-    runtime = ReactivePlanner(planner, RuntimeConfig(space_time=space_time))
+    runtime_config = RuntimeConfig(space_time=space_time)
+    if resting_buffer_m is not None:
+        runtime_config = replace(runtime_config, resting_buffer_m=resting_buffer_m)
+    settings["resting_buffer_m"] = runtime_config.resting_buffer_m
+    runtime = ReactivePlanner(planner, runtime_config)
     return (_PlanOnce(runtime) if name == "damon-noreplan" else runtime), settings
 
 
@@ -91,7 +95,8 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     for scenario in scenarios:
         for name in planners:
             runtime, settings = make_runtime(name, model, fast, args.seed, args.solve_time,
-                                             args.margin, space_time=not args.no_space_time)
+                                             args.margin, space_time=not args.no_space_time,
+                                             resting_buffer_m=args.resting_buffer)
             t0 = time.perf_counter()
             try:
                 record = run_scenario(scenario, runtime, name, mesh, fast, config).as_json()
@@ -259,10 +264,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-space-time", action="store_true",
                         help="certify paths against swept obstacles only (the rule before "
                              "space-time certification), for comparison")
+    parser.add_argument("--resting-buffer", type=float, default=None,
+                        help="m a new goal's route keeps beyond the margin from balls at rest "
+                             "(default: the planner node's resting_buffer_m, 0.05; 0 = off)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     if args.margin is not None and not 0.0 <= args.margin <= 0.5:
         parser.error("--margin must be in [0, 0.5] m")
+    if args.resting_buffer is not None and not 0.0 <= args.resting_buffer <= 0.5:
+        parser.error("--resting-buffer must be in [0, 0.5] m")
     if args.perception == "camera":
         from damon_ros.perception.camera import load_cameras
 

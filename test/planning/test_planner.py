@@ -11,7 +11,12 @@ from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.core.shapes import Shape
 from damon_ros.learning.bundle import DamonModel
 from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig, PoseGoal, Scene, _Query
-from damon_ros.planning.reactive import ReactivePlanner, swept
+from damon_ros.planning.reactive import (
+    ReactivePlanner,
+    RuntimeConfig,
+    resting_buffered,
+    swept,
+)
 from damon_ros.simulation.closed_loop import pose_goal
 
 SCENARIOS = load_public_scenarios()
@@ -92,6 +97,50 @@ def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(plann
     assert event is not None and event.kind == "trajectory", event
     assert "blocks" in event.reason
     assert _mesh_clearance_along(mesh, event.result.path, [ball]) > 0.0
+
+
+def _fast_clearance_along(fast: Robot, path: np.ndarray, obstacles, step: float = 0.02):
+    states = [a + f * (b - a) for a, b in zip(path, path[1:], strict=False)
+              for f in np.linspace(0.0, 1.0, max(2, int(np.ceil(np.max(np.abs(b - a)) / step))))]
+    return float(fast.distances(np.array(states), obstacles).min())
+
+
+def _ball_beside(fast: Robot, q: np.ndarray, low: float, high: float) -> Shape:
+    """A small ball low..high m from the arm at ``q`` (first of a few directions)."""
+    tcp = fast.fk(q)[:3, 3]
+    for direction in ([0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, -1]):
+        for reach in np.arange(0.05, 0.3, 0.005):
+            ball = Shape("sphere", (0.03,), tcp + reach * np.asarray(direction, float))
+            if low <= fast.clearance(q, [ball]).distance <= high:
+                return ball
+    raise AssertionError("no place for the ball")
+
+
+def test_a_new_goals_route_keeps_the_buffer_from_a_ball_at_rest_unless_none_does(planner,
+                                                                                robots):
+    """A ball at rest may start to roll: a new goal's route keeps `resting_buffer_m` more
+    from it than the margin (B-001's ball lies by the direct route), and a goal the buffer
+    would refuse (a ball beside the goal pose) is still planned, without it. Only balls
+    slower than the movers' threshold count as at rest; boxes do not."""
+    fast, _ = robots
+    scenario = next(s for s in SCENARIOS if s.name == "B-001")
+    (ball,) = scenario.obstacles_at(0.0)
+    margin, buffer = planner.config.margin, 0.05
+    box = Shape("box", (0.1, 0.1, 0.1), np.array([0.5, 0.3, 0.3]))
+    slow, fast_v = np.array([0.01, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
+    grown = resting_buffered([(ball, slow), (ball, fast_v), (box, np.zeros(3))], buffer, 0.05)
+    assert [s.size for s, _ in grown] == [(ball.size[0] + buffer,), ball.size, box.size]
+    plain = planner.plan(scenario.start, pose_goal(scenario), [ball])
+    assert plain.success
+    assert _fast_clearance_along(fast, plain.path, [ball]) < margin + buffer  # nearer
+    runtime = ReactivePlanner(planner, RuntimeConfig(resting_buffer_m=buffer))
+    event = runtime.set_goal(scenario.start, pose_goal(scenario), [(ball, np.zeros(3))])
+    assert event.kind == "trajectory", event.reason
+    assert _fast_clearance_along(fast, event.result.path, [ball]) >= margin + buffer - 1e-6
+    beside = _ball_beside(fast, plain.path[-1], 0.02, 0.035)
+    event = runtime.set_goal(scenario.start, pose_goal(scenario), [(beside, np.zeros(3))])
+    assert event.kind == "trajectory", event.reason
+    assert _fast_clearance_along(fast, event.result.path, [beside]) < margin + buffer
 
 
 def test_a_goal_inside_an_obstacle_is_refused_with_a_reason(planner):
