@@ -139,23 +139,18 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
         return None
     xy = np.ascontiguousarray(points[:, :2], dtype=np.float32)
     (_, _), (_, _), angle = cv2.minAreaRect(xy)
-    yaw = math.radians(angle)
     tol = config.face_tolerance_m
-    for refine in (True, False):
-        c, s = math.cos(yaw), math.sin(yaw)
-        axes = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # columns: box x, y, z
-        local = points @ axes
-        # Depth noise spreads a face's points over several sigma; the face test is against
-        # robust planes (percentiles), the bound against the extremes.
-        robust_low, robust_high = _percentiles_1_99(local)
-        near_low = np.abs(local - robust_low) <= tol
-        near_high = np.abs(local - robust_high) <= tol
-        if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
-            yaw, face_width = _face_yaw(points, near_low, near_high, yaw)
-    low, high = local.min(axis=0), local.max(axis=0)
+    yaw, axes, local, near_low, near_high, face_width = _box_frame(points, math.radians(angle), tol)
     on_face = (near_low | near_high).any(axis=1)
     if on_face.mean() < BOX_SHARE:
-        return None
+        # Two faces and no top (a camera level with the box) leave an L-shaped footprint,
+        # whose minimum-area rectangle need not be aligned with either face: search the yaw
+        yaw, axes, local, near_low, near_high, face_width = _box_frame(
+            points, _best_face_yaw(points, tol), tol)
+        on_face = (near_low | near_high).any(axis=1)
+        if on_face.mean() < BOX_SHARE:
+            return None
+    low, high = local.min(axis=0), local.max(axis=0)
     need = max(8, int(FACE_SHARE * len(points)))
     # visible[k, 0] / [k, 1]: the face at low / high of axis k faces a camera (by more than
     # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
@@ -215,6 +210,52 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def _box_frame(points: np.ndarray, yaw: float, tol: float) -> tuple:
+    """The box frame at ``yaw`` refined once by its best-populated face (`_face_yaw`):
+    (yaw, axes, the points in it, which lie near the low / high robust planes of each axis,
+    the face's width)."""
+    for refine in (True, False):
+        c, s = math.cos(yaw), math.sin(yaw)
+        axes = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # columns: box x, y, z
+        local = points @ axes
+        # Depth noise spreads a face's points over several sigma; the face test is against
+        # robust planes (percentiles), the bound against the extremes.
+        robust_low, robust_high = _percentiles_1_99(local)
+        near_low = np.abs(local - robust_low) <= tol
+        near_high = np.abs(local - robust_high) <= tol
+        if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
+            yaw, face_width = _face_yaw(points, near_low, near_high, yaw)
+    return yaw, axes, local, near_low, near_high, face_width
+
+
+YAW_SEARCH_STEP_RAD = math.radians(3.0)
+"""Grid of the yaw search (`_best_face_yaw`): a face of 0.3 m turned by half a step lies
+within ~4 mm of its plane, inside the face tolerance, so the best yaw is found to a step
+and the face fit refines it."""
+
+
+YAW_SEARCH_POINTS = 256
+"""The yaw search looks at at most this many of the points (evenly thinned): it runs on
+every blob that is no box at the rectangle's yaw (a pole, a ball that is not round), and a
+share of the points on the faces needs no more."""
+
+
+def _best_face_yaw(points: np.ndarray, tol: float) -> float:
+    """The yaw (a quarter turn, on a `YAW_SEARCH_STEP_RAD` grid) that puts the most points
+    within ``tol`` of the robust planes of the horizontal axes: where two faces lie."""
+    xy = points[::max(1, len(points) // YAW_SEARCH_POINTS), :2]
+    best, best_yaw = -1, 0.0
+    for yaw in np.arange(0.0, 0.5 * math.pi, YAW_SEARCH_STEP_RAD):
+        c, s = math.cos(yaw), math.sin(yaw)
+        local = xy @ np.array([[c, -s], [s, c]])
+        low, high = _percentiles_1_99(local)
+        count = int(((np.abs(local - low) <= tol) | (np.abs(local - high) <= tol))
+                    .any(axis=1).sum())
+        if count > best:
+            best, best_yaw = count, float(yaw)
+    return best_yaw
 
 
 def _skewed(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray, lo: np.ndarray,
