@@ -220,14 +220,18 @@ def _box_frame(points: np.ndarray, yaw: float, tol: float) -> tuple:
         c, s = math.cos(yaw), math.sin(yaw)
         axes = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # columns: box x, y, z
         local = points @ axes
-        # Depth noise spreads a face's points over several sigma; the face test is against
-        # robust planes (percentiles), the bound against the extremes.
-        robust_low, robust_high = _percentiles_1_99(local)
-        near_low = np.abs(local - robust_low) <= tol
-        near_high = np.abs(local - robust_high) <= tol
+        near_low, near_high = _near_planes(local, tol)
         if refine:  # the rectangle's yaw rests on a few noisy extremes; a face's on all
             yaw, face_width = _face_yaw(points, near_low, near_high, yaw)
     return yaw, axes, local, near_low, near_high, face_width
+
+
+def _near_planes(local: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the points (rows of ``local``) lie within ``tol`` of the low / high robust
+    plane of each axis. Depth noise spreads a face's points over several sigma; the face
+    test is against robust planes (percentiles), the bound against the extremes."""
+    robust_low, robust_high = _percentiles_1_99(local)
+    return np.abs(local - robust_low) <= tol, np.abs(local - robust_high) <= tol
 
 
 YAW_SEARCH_STEP_RAD = math.radians(3.0)
@@ -249,10 +253,8 @@ def _best_face_yaw(points: np.ndarray, tol: float) -> float:
     best, best_yaw = -1, 0.0
     for yaw in np.arange(0.0, 0.5 * math.pi, YAW_SEARCH_STEP_RAD):
         c, s = math.cos(yaw), math.sin(yaw)
-        local = xy @ np.array([[c, -s], [s, c]])
-        low, high = _percentiles_1_99(local)
-        count = int(((np.abs(local - low) <= tol) | (np.abs(local - high) <= tol))
-                    .any(axis=1).sum())
+        near_low, near_high = _near_planes(xy @ np.array([[c, -s], [s, c]]), tol)
+        count = int((near_low | near_high).any(axis=1).sum())
         if count > best:
             best, best_yaw = count, float(yaw)
     return best_yaw
