@@ -591,7 +591,8 @@ class GraphPlanner:
         return None if contact is None else contact.time_s
 
     def _stop_contact(self, trajectory, scene: Scene, margin: float,
-                      hint_s: float | None = None, part: str = "all", describe: bool = True):
+                      hint_s: float | None = None, part: str = "all", describe: bool = True,
+                      not_before: float = math.inf):
         """Where braking from one of the trajectory's states would meet a mover's predicted
         region, or None: from states at most STOP_EVERY_RAD / STOP_EVERY_S apart, the stop
         the runtime would send there (`stop_trajectory`: coast, then full-limit brake along
@@ -611,7 +612,10 @@ class GraphPlanner:
         `_refusal`): a stop the compiled screen finds meeting a mover is not asked again
         (that re-ask only described the contact), nor is a stop flagged on the statics
         asked about the movers the screen cleared it of; the contact returned then says
-        only when (the stop's start, obstacle -1)."""
+        only when (the stop's start, obstacle -1).
+        ``not_before`` finite (an escape from a state whose own stop is refused then,
+        `escape`): a stop that meets a mover no earlier than that is no worse than holding
+        and passes; the rest at the end does not (it is where the escape goes)."""
         if not scene.moving:
             return None
         p = self.config.prediction
@@ -643,7 +647,7 @@ class GraphPlanner:
             contact = None if what == 2 and not describe else first_contact(
                 self.robot, times, states, scene.moving, margin + STOP_MARGIN_M,
                 self.config.resolution, p, tau0 + float(trajectory.times[i]))
-            if contact is not None:
+            if contact is not None and trajectory.times[i] + contact.time_s < not_before:
                 return replace(contact, time_s=float(trajectory.times[i]) + contact.time_s)
             if statics and not self.segment_free(q, states[-1], statics, 0.0, exact=False) \
                     and not self.exact.segment_free(q, states[-1], statics, margin=0.0,
@@ -1168,7 +1172,13 @@ class GraphPlanner:
         certified (against the obstacles now) wins — with movers, only one whose timed
         move, and REST_HORIZON_S at rest after it, is certified in space and time (with its
         stops): evade where the mover will be, not where it is. A moving arm (``qd_now``)
-        escapes from where it brakes to, the brake part of the trajectory."""
+        escapes from where it brakes to, the brake part of the trajectory. Where holding
+        is itself refused (`rest_contact`: a mover's prediction reaches the arm braked in
+        place at t_hold), the escape's stops need only be no worse than holding (none meets
+        a mover before t_hold); its own states and its rest are certified in full. With
+        every stop held to the full rule, an arm 4 cm above a ball rising at 0.13 m/s found
+        no escape (each one's first stop rests in the ball's way, as holding does), held,
+        and was hit: the 10-minute soak's contacts."""
         t0 = time.perf_counter()
         q_now = np.asarray(q_now, float)
         scene = Scene.of(obstacles)
@@ -1195,6 +1205,8 @@ class GraphPlanner:
         # with movers the clearance now can be large and still shrinking: more than λ will do
         floor = self.config.margin if scene.moving else max(current, self.config.margin)
         margin = self._mover_margin(q_now, scene)
+        not_before = self._hold_refused_at(q_now, qd_now, scene, margin)
+        moves = []  # (target, path, trajectory) of the candidates certified on the statics
         for i in np.argsort(-clear)[:24]:
             if clear[i] <= floor + 0.01:
                 break
@@ -1209,22 +1221,73 @@ class GraphPlanner:
 
                 path = np.vstack([q_now[None], path])
                 trajectory = concatenate(brake, trajectory)
-            if scene.moving and not self._rests_clear(trajectory, scene, margin):
-                continue
-            return PlanResult(True, f"escaping: clearance {current:.3f} → {clear[i]:.3f} m",
-                              path=path, trajectory=trajectory, goal_q=self.goal_q,
-                              edges_checked=query.checked, source="escape",
-                              timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+            moves.append((i, path, trajectory))
+            if not scene.moving or self._rests_clear(trajectory, scene, margin, not_before):
+                return self._escape_result(f"escaping: clearance {current:.3f} → "
+                                           f"{clear[i]:.3f} m", path, trajectory, query, t0)
+        if not math.isinf(not_before):
+            # holding meets a mover: the clearest move whose nominal path keeps clear
+            for i, path, trajectory in moves:
+                if self._rests_clear_nominal(trajectory, scene):
+                    return self._escape_result(
+                        f"escaping as a last resort (holding meets a mover's prediction "
+                        f"{not_before:.2f} s from now, no move is certified against its "
+                        f"grown region; this one keeps clear of its nominal path): "
+                        f"clearance {current:.3f} → {clear[i]:.3f} m", path, trajectory,
+                        query, t0)
         return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
 
-    def _rests_clear(self, trajectory, scene: Scene, margin: float) -> bool:
-        """The trajectory, then REST_HORIZON_S at rest at its end, certified in space and
-        time with its stops."""
+    def _escape_result(self, reason: str, path: np.ndarray, trajectory, query: _Query,
+                       t0: float) -> PlanResult:
+        return PlanResult(True, reason, path=path, trajectory=trajectory, goal_q=self.goal_q,
+                          edges_checked=query.checked, source="escape",
+                          timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
+
+    def _rests_clear_nominal(self, trajectory, scene: Scene) -> bool:
+        """The trajectory and REST_HORIZON_S at rest after it against each mover where its
+        reported velocity takes it (no growth, no margin; the check's half step kept): the
+        last resort of an escape from a hold that a mover's prediction reaches, where no
+        move is certified against the grown regions (the arm is already within them)."""
         from damon_ros.planning.trajectory import held_until
 
-        return self._refusal(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
-                             scene, margin) is None
+        held = held_until(trajectory, trajectory.duration + REST_HORIZON_S)
+        nominal = replace(self.config.prediction, position_sigma_m=0.0,
+                          velocity_sigma_m_s=0.0, velocity_sigma_rel=0.0,
+                          acceleration_m_s2=0.0)
+        return refused_at(self.robot, held.times, held.positions, scene.moving, 0.0,
+                          self.config.resolution, nominal, scene.age_s) is None
+
+    def _hold_refused_at(self, q: np.ndarray, qd: np.ndarray | None, scene: Scene,
+                         margin: float) -> float:
+        """When braking in place and resting there would meet a mover, checked as a stop
+        of a trajectory is (margin + STOP_MARGIN_M), less one check interval (the first
+        refused instant is up to one late): an escape's stops compare with it
+        (`_stop_contact`'s ``not_before``). Infinite when holding is certified."""
+        if not scene.moving:
+            return math.inf
+        contact = self.rest_contact(q, qd, scene, margin + STOP_MARGIN_M)
+        if contact is None or contact.obstacle < 0:
+            return math.inf
+        p = self.config.prediction
+        speed = max(float(np.linalg.norm(v)) for _, v in scene.moving)
+        interval = p.step_m / p.rate(speed, max(scene.age_s, p.min_age_s) + contact.time_s)
+        return max(0.0, contact.time_s - interval)
+
+    def _rests_clear(self, trajectory, scene: Scene, margin: float,
+                     not_before: float = math.inf) -> bool:
+        """The trajectory, then REST_HORIZON_S at rest at its end, certified in space and
+        time with its stops; with ``not_before`` finite (holding where the arm is meets a
+        mover then) a stop only has to meet no mover before that (`_stop_contact`)."""
+        from damon_ros.planning.trajectory import held_until
+
+        held = held_until(trajectory, trajectory.duration + REST_HORIZON_S)
+        if math.isinf(not_before):
+            return self._refusal(held, scene, margin) is None
+        return refused_at(self.robot, held.times, held.positions, scene.moving, margin,
+                          self.config.resolution, self.config.prediction,
+                          scene.age_s) is None and self._stop_contact(
+            held, scene, margin, not_before=not_before) is None
 
     def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
         """Each mover where it is predicted a quarter, half, three quarters and all of
