@@ -159,7 +159,7 @@ class PlanResult:
     edges_checked: int = 0
     edges_rejected: int = 0
     timing_ms: dict[str, float] = field(default_factory=dict)
-    source: str = "graph"  # graph | experience | rrtconnect | escape: what found the route
+    source: str = "graph"  # graph | experience | rrtconnect | escape | last resort (`escape`)
 
     @property
     def path_length(self) -> float:
@@ -1172,10 +1172,12 @@ class GraphPlanner:
         certified (against the obstacles now) wins — with movers, only one whose timed
         move, and REST_HORIZON_S at rest after it, is certified in space and time (with its
         stops): evade where the mover will be, not where it is. A moving arm (``qd_now``)
-        escapes from where it brakes to, the brake part of the trajectory. Where holding
-        is itself refused (`rest_contact`: a mover's prediction reaches the arm braked in
-        place at t_hold), the escape's stops need only be no worse than holding (none meets
-        a mover before t_hold); its own states and its rest are certified in full. With
+        escapes from where it brakes to, the brake part of the trajectory. Where an arm at
+        rest can't hold (`rest_contact`: a mover's prediction reaches it at t_hold), the
+        escape's stops need only be no worse than holding (none meets a mover before
+        t_hold); its own states and its rest are certified in full; failing that, the
+        clearest move that keeps clear of the movers' nominal paths (`nominally_clear`) is
+        a last resort (source "last resort"). With
         every stop held to the full rule, an arm 4 cm above a ball rising at 0.13 m/s found
         no escape (each one's first stop rests in the ball's way, as holding does), held,
         and was hit: the 10-minute soak's contacts."""
@@ -1205,7 +1207,10 @@ class GraphPlanner:
         # with movers the clearance now can be large and still shrinking: more than λ will do
         floor = self.config.margin if scene.moving else max(current, self.config.margin)
         margin = self._mover_margin(q_now, scene)
-        not_before = self._hold_refused_at(q_now, qd_now, scene, margin)
+        # an arm at rest that holding leaves in a mover's way (a moving arm that cannot
+        # stop in time has following on, `follow_on_safer`, tuned on the stress bench)
+        not_before = math.inf if brake is not None else self._hold_refused_at(
+            q_now, None, scene, margin)
         moves = []  # (target, path, trajectory) of the candidates certified on the statics
         for i in np.argsort(-clear)[:24]:
             if clear[i] <= floor + 0.01:
@@ -1225,37 +1230,37 @@ class GraphPlanner:
             if not scene.moving or self._rests_clear(trajectory, scene, margin, not_before):
                 return self._escape_result(f"escaping: clearance {current:.3f} → "
                                            f"{clear[i]:.3f} m", path, trajectory, query, t0)
-        if not math.isinf(not_before):
-            # holding meets a mover: the clearest move whose nominal path keeps clear
+        if not math.isinf(not_before):  # the clearest move whose nominal path keeps clear
             for i, path, trajectory in moves:
-                if self._rests_clear_nominal(trajectory, scene):
+                if self.nominally_clear(trajectory.times, trajectory.positions, scene):
                     return self._escape_result(
                         f"escaping as a last resort (holding meets a mover's prediction "
                         f"{not_before:.2f} s from now, no move is certified against its "
                         f"grown region; this one keeps clear of its nominal path): "
                         f"clearance {current:.3f} → {clear[i]:.3f} m", path, trajectory,
-                        query, t0)
+                        query, t0, "last resort")
         return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
 
     def _escape_result(self, reason: str, path: np.ndarray, trajectory, query: _Query,
-                       t0: float) -> PlanResult:
+                       t0: float, source: str = "escape") -> PlanResult:
         return PlanResult(True, reason, path=path, trajectory=trajectory, goal_q=self.goal_q,
-                          edges_checked=query.checked, source="escape",
+                          edges_checked=query.checked, source=source,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
 
-    def _rests_clear_nominal(self, trajectory, scene: Scene) -> bool:
-        """The trajectory and REST_HORIZON_S at rest after it against each mover where its
-        reported velocity takes it (no growth, no margin; the check's half step kept): the
-        last resort of an escape from a hold that a mover's prediction reaches, where no
-        move is certified against the grown regions (the arm is already within them)."""
-        from damon_ros.planning.trajectory import held_until
-
-        held = held_until(trajectory, trajectory.duration + REST_HORIZON_S)
+    def nominally_clear(self, times: np.ndarray, positions: np.ndarray, obstacles) -> bool:
+        """The timed states (``times`` from now), then REST_HORIZON_S at rest at the last,
+        against each mover where its reported velocity takes it (no growth, no margin; the
+        check's half step kept): the last resort of an escape from a hold that a mover's
+        prediction reaches where no move is certified against the grown regions (the arm
+        is already within them), and the re-check of that escape while it runs."""
+        scene = Scene.of(obstacles)
+        times = np.append(np.asarray(times, float), float(times[-1]) + REST_HORIZON_S)
+        positions = np.vstack([positions, positions[-1:]])
         nominal = replace(self.config.prediction, position_sigma_m=0.0,
                           velocity_sigma_m_s=0.0, velocity_sigma_rel=0.0,
                           acceleration_m_s2=0.0)
-        return refused_at(self.robot, held.times, held.positions, scene.moving, 0.0,
+        return refused_at(self.robot, times, positions, scene.moving, 0.0,
                           self.config.resolution, nominal, scene.age_s) is None
 
     def _hold_refused_at(self, q: np.ndarray, qd: np.ndarray | None, scene: Scene,

@@ -205,6 +205,7 @@ class ReactivePlanner:
         self.path = np.zeros((0, 7))
         self.segment = 0
         self.trajectory = None  # what runs, and its time 0 on the caller's clock (or None)
+        self.trajectory_source = ""  # what found it (`PlanResult.source`)
         self._t_start: float | None = None
         self._sample = 0  # the trajectory sample the arm was last found at
         self.retries = RetryPacer(self.config.retry_period_s)
@@ -345,6 +346,11 @@ class ReactivePlanner:
         # no reason to re-route (the short step back onto the path is checked too)
         remaining = np.vstack([on_path[None], self.path[self.segment + 1:]])
         timed = self._remaining(t, q_now) if shapes.moving else None
+        if timed is not None and self.trajectory_source == "last resort":
+            # an escape taken inside a mover's grown region: re-checked by the rule that
+            # chose it, or the next check would brake it where holding meets the mover
+            if self.planner.nominally_clear(*timed, shapes):
+                return None
         if timed is None:
             threatened, why = self.planner.path_threatened(q_now, remaining, shapes)
         else:
@@ -487,6 +493,7 @@ class ReactivePlanner:
         self.path = result.path
         self.segment = 0
         self.trajectory, self._t_start, self._sample = result.trajectory, None, 0
+        self.trajectory_source = result.source
         return Event("trajectory", "", result, latency)
 
     def _hold(self, reason: str, result: PlanResult | None = None, latency: float = 0.0) -> Event:
