@@ -313,3 +313,24 @@ def test_a_holding_arm_above_a_ball_that_starts_rising_gets_out(planner, fast, g
     gaps = [float(fast.distances(s[None], [ball.moved_to(ball.position + v * (t + AGE))])[0])
             for t, s in zip(times, states, strict=True)]
     assert min(gaps) > 0.0
+
+
+def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_mover(planner, fast):
+    """The held arm 1.5 cm above the rising ball takes the last-resort escape; the next
+    update, on schedule along it, lets it run: re-checked by the full rule it is inside the
+    ball's grown region, and braking there is what holding would have been."""
+    q = READY.copy()
+    v = np.array([0.0, 0.0, 0.133])
+    ball = _ball_below(fast, q, 0.015)
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    runtime.state = "holding"
+    planner.goal_q = None  # nothing to resume toward: only the escape can move it
+    event = runtime.update(0.0, q, [(ball, v)], qd_now=np.zeros(7))
+    assert event is not None and event.kind == "trajectory", event
+    assert event.result.source == "last resort" and "last resort" in event.reason
+    tr = event.result.trajectory
+    t = 0.02  # (from 0.05 on the arm is out of the grown region: nothing to flag)
+    at, qd = tr.sample(t - event.latency_ms / 1e3)[:2]
+    later = ball.moved_to(ball.position + v * t)
+    assert runtime.update(t, at, [(later, v)], qd_now=qd) is None
+    assert runtime.state == "executing"
