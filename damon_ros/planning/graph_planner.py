@@ -1209,8 +1209,8 @@ class GraphPlanner:
         margin = self._mover_margin(q_now, scene)
         # an arm at rest that holding leaves in a mover's way (a moving arm that cannot
         # stop in time has following on, `follow_on_safer`, tuned on the stress bench)
-        not_before = math.inf if brake is not None else self._hold_refused_at(
-            q_now, None, scene, margin)
+        hold_at = self._hold_refused_at(q_now, qd_now, scene, margin)
+        not_before = math.inf if brake is not None else hold_at
         moves = []  # (target, path, trajectory) of the candidates certified on the statics
         for i in np.argsort(-clear)[:24]:
             if clear[i] <= floor + 0.01:
@@ -1230,12 +1230,12 @@ class GraphPlanner:
             if not scene.moving or self._rests_clear(trajectory, scene, margin, not_before):
                 return self._escape_result(f"escaping: clearance {current:.3f} → "
                                            f"{clear[i]:.3f} m", path, trajectory, query, t0)
-        if not math.isinf(not_before):  # the clearest move whose nominal path keeps clear
+        if not math.isinf(hold_at):  # the clearest move whose nominal path keeps clear
             for i, path, trajectory in moves:
                 if self.nominally_clear(trajectory.times, trajectory.positions, scene):
                     return self._escape_result(
                         f"escaping as a last resort (holding meets a mover's prediction "
-                        f"{not_before:.2f} s from now, no move is certified against its "
+                        f"{hold_at:.2f} s from now, no move is certified against its "
                         f"grown region; this one keeps clear of its nominal path): "
                         f"clearance {current:.3f} → {clear[i]:.3f} m", path, trajectory,
                         query, t0, "last resort")
