@@ -334,6 +334,7 @@ class GraphPlanner:
             np.ascontiguousarray(graph.weights, np.float64))
         self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
         self._fallback_failures = 0  # toward the current goal: escalates the budget
+        self._moving_start = False  # routing from a moving arm (`_route_moving`): no escalation
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
         self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
         # during `_route_in_time`: {"query": the last route search's `_Query`}, which a
@@ -807,7 +808,11 @@ class GraphPlanner:
         if not query.segment_certified(q_start, q_stop, first=True):
             return PlanResult(False, "braking from the current speed is not certified free; "
                               "holding position", goal_q=q_goal)
-        result = self._route_to_goal(q_stop, q_goal, scene)
+        self._moving_start = True
+        try:
+            result = self._route_to_goal(q_stop, q_goal, scene)
+        finally:
+            self._moving_start = False
         if result.success:
             # the trajectory starts from the measured position *and velocity*: the brake
             # along the line (certified above), then the route from where it ends at rest
@@ -966,7 +971,9 @@ class GraphPlanner:
         if self.config.fallback_budget_s <= 0.0:
             return None, "", ""
         attempt = self._fallback_failures
-        budget = self._fallback_budget(attempt)
+        # the escalation is for a holding arm's retries: a moving arm coasts on while it
+        # searches (an 0.8 s search let a stress-bench arm run into the mover it re-routed for)
+        budget = self._fallback_budget(0 if self._moving_start else attempt)
         raw = self._sampling_route(query, budget, seed=attempt)
         path = None if raw is None else self._shortened(raw, query)
         if path is not None:

@@ -82,6 +82,30 @@ def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
     assert all("holding position" in r for r in reasons)
 
 
+def test_a_moving_arm_gets_the_first_budget_not_the_escalated_one(planner, monkeypatch):
+    """The escalation is for a holding arm's retries; an arm in motion coasts on while the
+    search runs (an 0.8 s search let a stress-bench arm reach the mover it re-routed
+    around), so its searches keep the first budget — and still count as failures."""
+    budgets = []
+
+    def nothing(query, budget, seed):
+        budgets.append((budget, seed))
+        return None
+
+    monkeypatch.setattr(planner, "_sampling_route", nothing)
+    obstacles = SCENE.obstacles_at(0.0)
+    for _ in range(3):  # a holding arm's retries escalate
+        planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
+    qd = np.zeros(7)
+    qd[0] = 0.5
+    result = planner.replan(SCENE.start, obstacles, qd_now=qd)
+    assert not result.success
+    assert budgets[:3] == [(2.0, 0), (4.0, 1), (8.0, 2)]
+    assert budgets[3:] and all(b == 2.0 for b, _ in budgets[3:]), budgets
+    assert planner.plan(SCENE.start, pose_goal(SCENE), obstacles).reason  # at rest again:
+    assert budgets[-1][0] == 16.0  # the escalation goes on
+
+
 def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
     # a "route" straight through the box: what the checker must refuse
     goal_q = planner.resolve_goal(pose_goal(SCENE), SCENE.start, SCENE.obstacles_at(0.0))[0]
