@@ -1182,12 +1182,12 @@ class GraphPlanner:
         escapes from where it brakes to, the brake part of the trajectory. Where an arm at
         rest can't hold (`rest_contact`: a mover's prediction reaches it at t_hold), the
         escape's stops need only be no worse than holding (none meets a mover before
-        t_hold); its own states and its rest are certified in full; failing that, the
-        clearest move that keeps clear of the movers' nominal paths (`nominally_clear`) is
-        a last resort (source "last resort"). With
-        every stop held to the full rule, an arm 4 cm above a ball rising at 0.13 m/s found
-        no escape (each one's first stop rests in the ball's way, as holding does), held,
-        and was hit: the 10-minute soak's contacts."""
+        t_hold); its own states and its rest are certified in full. Where nothing is
+        certified and stopping meets a mover, at rest or braking, the clearest move that
+        keeps clear of the movers' nominal paths (`nominally_clear`) is a last resort
+        (source "last resort"). With every stop held to the full rule, an arm 4 cm above a
+        ball rising at 0.13 m/s found no escape (each one's first stop rests in the ball's
+        way, as holding does), held, and was hit: the 10-minute soak's contacts."""
         t0 = time.perf_counter()
         q_now = np.asarray(q_now, float)
         scene = Scene.of(obstacles)
