@@ -1214,8 +1214,8 @@ class GraphPlanner:
         # with movers the clearance now can be large and still shrinking: more than λ will do
         floor = self.config.margin if scene.moving else max(current, self.config.margin)
         margin = self._mover_margin(q_now, scene)
-        # an arm at rest that holding leaves in a mover's way (a moving arm that cannot
-        # stop in time has following on, `follow_on_safer`, tuned on the stress bench)
+        # where stopping meets a mover: the stops' relaxed rule for an arm at rest only
+        # (moving arms with it regressed three stress scenes), the last resort for both
         hold_at = self._hold_refused_at(q_now, qd_now, scene, margin)
         not_before = math.inf if brake is not None else hold_at
         moves = []  # (target, path, trajectory) of the candidates certified on the statics

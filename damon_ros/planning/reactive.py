@@ -347,9 +347,11 @@ class ReactivePlanner:
         remaining = np.vstack([on_path[None], self.path[self.segment + 1:]])
         timed = self._remaining(t, q_now) if shapes.moving else None
         if timed is not None and self.trajectory_source == "last resort":
-            # an escape taken inside a mover's grown region: re-checked by the rule that
-            # chose it, or the next check would brake it where holding meets the mover
-            if self.planner.nominally_clear(*timed, shapes):
+            # an escape taken inside a mover's grown region: the movers re-checked by the
+            # rule that chose it (the full one would brake it where holding meets the
+            # mover), the static obstacles as always
+            if self.planner.nominally_clear(*timed, shapes) and not \
+                    self.planner.path_threatened(q_now, remaining, shapes.statics())[0]:
                 return None
         if timed is None:
             threatened, why = self.planner.path_threatened(q_now, remaining, shapes)

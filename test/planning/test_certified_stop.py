@@ -334,3 +334,8 @@ def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_move
     later = ball.moved_to(ball.position + v * t)
     assert runtime.update(t, at, [(later, v)], qd_now=qd) is None
     assert runtime.state == "executing"
+    # a static object that appears where the escape goes is still a threat to it
+    end, _ = fast.tcp_pose(tr.positions[-1])
+    box = Shape("box", (0.05, 0.05, 0.05), end, name="box")
+    event = runtime.update(t + 0.01, at, [(later, v), (box, np.zeros(3))], qd_now=qd)
+    assert event is not None, "the last resort ran on into a static box"
