@@ -330,7 +330,7 @@ def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_move
     assert event.result.source == "last resort" and "last resort" in event.reason
     tr = event.result.trajectory
     runtime._t_start = 0.0  # as if decided at once: the check, not this machine's latency
-    t = 0.02  # (from 0.05 on the arm is out of the grown region: nothing to flag)
+    t = 0.005  # (from 0.01 on the arm is out of the grown region: nothing to flag)
     at, qd = tr.sample(t)[:2]
     later = ball.moved_to(ball.position + v * t)
     assert runtime.update(t, at, [(later, v)], qd_now=qd) is None
