@@ -226,11 +226,14 @@ def _box_frame(points: np.ndarray, yaw: float, tol: float) -> tuple:
     return yaw, axes, local, near_low, near_high, face_width
 
 
-def _near_planes(local: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Which of the points (rows of ``local``) lie within ``tol`` of the low / high robust
-    plane of each axis. Depth noise spreads a face's points over several sigma; the face
-    test is against robust planes (percentiles), the bound against the extremes."""
-    robust_low, robust_high = _percentiles_1_99(local)
+def _near_planes(local: np.ndarray, tol: float,
+                 axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the points (along ``axis`` of ``local``) lie within ``tol`` of the low /
+    high robust plane of each box axis. Depth noise spreads a face's points over several
+    sigma; the face test is against robust planes (percentiles), the bound against the
+    extremes."""
+    robust_low, robust_high = (np.expand_dims(r, axis)
+                               for r in _percentiles_1_99(local, axis=axis))
     return np.abs(local - robust_low) <= tol, np.abs(local - robust_high) <= tol
 
 
@@ -254,9 +257,8 @@ def _best_face_yaw(points: np.ndarray, tol: float) -> float:
     c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     # every yaw's frame at once (yaws x points x 2): one partition, not one call a yaw
     local = np.stack([c * xy[:, 0] + s * xy[:, 1], c * xy[:, 1] - s * xy[:, 0]], axis=2)
-    robust_low, robust_high = _percentiles_1_99(local, axis=1)
-    near = ((np.abs(local - robust_low[:, None]) <= tol)
-            | (np.abs(local - robust_high[:, None]) <= tol)).any(axis=2)
+    near_low, near_high = _near_planes(local, tol, axis=1)
+    near = (near_low | near_high).any(axis=2)
     return float(yaws[int(np.argmax(near.sum(axis=1)))])
 
 

@@ -570,7 +570,7 @@ class GraphPlanner:
                                                                         margin)
 
     def _refusal(self, trajectory, scene: Scene, margin: float,
-                 hint_s: float | None = None) -> float | None:
+                 hint_s: float | None = None, not_before: float = math.inf) -> float | None:
         """The time of a refused instant or stop when `_contact` is not None, else None:
         without describing the contact, for the yes/no of a delayed start or an escape's
         rest. With ``hint_s`` (where a similar trajectory was refused) the stops from states
@@ -587,8 +587,10 @@ class GraphPlanner:
                        hint_s)
         if t is not None:
             return t
+        # a finite ``not_before`` (`_stop_contact`) needs each stop's contact time
         contact = self._stop_contact(trajectory, scene, margin, hint_s,
-                                     "all" if hint_s is None else "far", describe=False)
+                                     "all" if hint_s is None else "far",
+                                     describe=not math.isinf(not_before), not_before=not_before)
         return None if contact is None else contact.time_s
 
     def _stop_contact(self, trajectory, scene: Scene, margin: float,
@@ -1293,13 +1295,8 @@ class GraphPlanner:
         mover then) a stop only has to meet no mover before that (`_stop_contact`)."""
         from damon_ros.planning.trajectory import held_until
 
-        held = held_until(trajectory, trajectory.duration + REST_HORIZON_S)
-        if math.isinf(not_before):
-            return self._refusal(held, scene, margin) is None
-        return refused_at(self.robot, held.times, held.positions, scene.moving, margin,
-                          self.config.resolution, self.config.prediction,
-                          scene.age_s) is None and self._stop_contact(
-            held, scene, margin, not_before=not_before) is None
+        return self._refusal(held_until(trajectory, trajectory.duration + REST_HORIZON_S),
+                             scene, margin, not_before=not_before) is None
 
     def _predicted(self, scene: Scene) -> tuple[Shape, ...]:
         """Each mover where it is predicted a quarter, half, three quarters and all of
