@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
+from damon_ros.perception.fit_kernels import sphere_fit
 from damon_ros.perception.segmentation import Blob
 from damon_ros.perception.tight_fit import fit_box, fit_cylinder, hull_points
 from damon_ros.perception.tracker_config import TrackerConfig
@@ -59,44 +60,16 @@ def fit_sphere(points: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, flo
 
     An algebraic fit (linear in centre and ``r^2 - |c|^2``) starts Gauss-Newton on the
     geometric distance; the visible cap of a sphere seen from outside is close to a
-    hemisphere, which constrains the centre well in all three directions. The 4x4 normal
-    equations are solved directly: the points are centred, so they are well conditioned.
-    Arrays are kept 3xN (rows contiguous) because that is what makes the reductions fast.
+    hemisphere, which constrains the centre well in all three directions. Compiled
+    (`fit_kernels.sphere_fit`): every blob of every frame is tried as a sphere first.
     """
-    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    p = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     if len(p) < 4:
         raise ValueError(f"a sphere fit needs at least 4 points, got {len(p)}")
-    q = np.ascontiguousarray(p.T)
-    mean = q.mean(axis=1)
-    q -= mean[:, None]
-    A = np.empty((4, q.shape[1]))  # the transposed design matrix
-    A[:3] = 2.0 * q
-    A[3] = 1.0
-    sol = _solve_normal(A, (q * q).sum(axis=0))
-    if sol is None:
+    centre, radius, rms, ok = sphere_fit(p, iterations)
+    if not ok:
         raise ValueError("a sphere fit needs points that are not coplanar")
-    centre = sol[:3]
-    radius = math.sqrt(max(sol[3] + centre @ centre, 1e-12))
-    for _ in range(iterations):
-        diff = q - centre[:, None]
-        dist = np.maximum(np.sqrt((diff * diff).sum(axis=0)), 1e-12)
-        A[:3] = diff / dist
-        step = _solve_normal(A, dist - radius)  # residual r_i = dist_i - radius
-        if step is None:
-            break
-        centre, radius = centre + step[:3], radius + step[3]
-    diff = q - centre[:, None]
-    residual = np.sqrt((diff * diff).sum(axis=0)) - radius
-    rms = math.sqrt(float(residual @ residual) / len(residual))
-    return centre + mean, float(abs(radius)), rms
-
-
-def _solve_normal(At: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-    """Least squares ``A x ~ b`` (given ``A`` transposed) by the normal equations."""
-    try:
-        return np.linalg.solve(At @ At.T, At @ b)
-    except np.linalg.LinAlgError:
-        return None
+    return centre, float(radius), float(rms)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
+from damon_ros.perception.fit_kernels import circle_fits
 from damon_ros.perception.tracker_config import TrackerConfig
 
 FACE_SHARE = 0.04
@@ -498,36 +499,6 @@ def _frames(axes: np.ndarray) -> np.ndarray:
     return np.stack([u, _cross_rows(axes, u), axes], axis=2)
 
 
-def _fit_circles(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares circles through K sets of 2-D points at once (``x``, ``y``: N x K,
-    column k one set): centres (K x 2), radii (K; NaN where the fit has none) and the rms
-    of ``|p - c| - r``.
-
-    The algebraic fit ``|p|^2 = 2 p.c + (r^2 - |c|^2)``, solved by its 3 x 3 normal
-    equations built from moments (well conditioned: the caller's points are centred), all
-    K in one batched solve: the axis search's 75 fits took 6-19 ms one by one, ~0.3 ms so.
-    """
-    n = float(len(x))
-    xx, yy = x * x, y * y
-    rhs = xx + yy
-    sx, sy = x.sum(axis=0), y.sum(axis=0)
-    sxx, syy, sxy = xx.sum(axis=0), yy.sum(axis=0), (x * y).sum(axis=0)
-    normal = np.empty((x.shape[1], 3, 3))
-    normal[:, 0, 0], normal[:, 1, 1], normal[:, 2, 2] = 4 * sxx, 4 * syy, n
-    normal[:, 0, 1] = normal[:, 1, 0] = 4 * sxy
-    normal[:, 0, 2] = normal[:, 2, 0] = 2 * sx
-    normal[:, 1, 2] = normal[:, 2, 1] = 2 * sy
-    right = np.column_stack([2 * (x * rhs).sum(axis=0), 2 * (y * rhs).sum(axis=0),
-                             rhs.sum(axis=0)])
-    sol = np.linalg.solve(normal, right[..., None])[..., 0]
-    cx, cy = sol[:, 0], sol[:, 1]
-    r2 = sol[:, 2] + cx * cx + cy * cy
-    radii = np.sqrt(np.where(r2 > 0.0, r2, np.nan))
-    dist = np.sqrt((x - cx) ** 2 + (y - cy) ** 2)
-    rms = np.sqrt(np.mean((dist - radii) ** 2, axis=0))
-    return sol[:, :2], radii, rms
-
-
 _GRID = np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)
 """The 5 x 5 grid of tilts of `_best_axis`, in steps."""
 
@@ -541,9 +512,8 @@ def _best_axis(points: np.ndarray) -> tuple[np.ndarray, tuple] | None:
     for step in AXIS_STEPS_RAD:
         tilts = np.column_stack([np.tan(_GRID * step), np.ones(k_all)])
         candidates = _frames(tilts @ frame.T)  # base @ [tan a, tan b, 1] for each tilt
-        # every candidate's u and v at once: N x 2K coordinates in one product
-        uv = centred @ np.concatenate([candidates[:, :, 0], candidates[:, :, 1]]).T
-        centres, radii, rms = _fit_circles(uv[:, :k_all], uv[:, k_all:])
+        centres, radii, rms = circle_fits(centred, np.ascontiguousarray(candidates[:, :, 0]),
+                                          np.ascontiguousarray(candidates[:, :, 1]))
         if not np.isfinite(radii).any():
             return None
         k = int(np.argmin(np.where(np.isfinite(radii), rms, np.inf)))
