@@ -164,3 +164,60 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
         d = math.sqrt(dx * dx + dy * dy + dz * dz) - radius
         sq += d * d
     return centre + mean, abs(radius), math.sqrt(sq / n), True
+
+
+@njit(cache=True)
+def _robust_ends(values: np.ndarray) -> tuple[float, float]:
+    """The 1st and 99th percentiles of ``values`` (linear interpolation, as np.percentile)
+    by one partition."""
+    n = len(values)
+    lows = np.empty(2, np.int64)
+    weights = np.empty(2)
+    for i, q in enumerate((0.01, 0.99)):
+        index = q * (n - 1)
+        lows[i] = int(math.floor(index))
+        weights[i] = index - lows[i]
+    kth = np.array([lows[0], min(lows[0] + 1, n - 1), lows[1], min(lows[1] + 1, n - 1)])
+    part = np.partition(values, kth)
+    out = np.empty(2)
+    for i in range(2):
+        a, b, w = part[lows[i]], part[min(lows[i] + 1, n - 1)], weights[i]
+        out[i] = a + (b - a) * w if w < 0.5 else b - (b - a) * (1.0 - w)
+    return out[0], out[1]
+
+
+@njit(cache=True)
+def near_planes(local: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which points (rows of ``local``, N x D) lie within ``tol`` of the low / high robust
+    plane (1st / 99th percentile) of each of the D axes: two N x D masks."""
+    n, dims = local.shape
+    near_low = np.empty((n, dims), np.bool_)
+    near_high = np.empty((n, dims), np.bool_)
+    column = np.empty(n)
+    for k in range(dims):
+        for i in range(n):
+            column[i] = local[i, k]
+        low, high = _robust_ends(column)
+        for i in range(n):
+            near_low[i, k] = abs(local[i, k] - low) <= tol
+            near_high[i, k] = abs(local[i, k] - high) <= tol
+    return near_low, near_high
+
+
+@njit(cache=True)
+def face_counts(xy: np.ndarray, yaws: np.ndarray, tol: float) -> np.ndarray:
+    """For each yaw, how many of the horizontal points ``xy`` (N x 2) lie within ``tol`` of
+    a robust plane (`near_planes`) of either horizontal axis of the frame turned by it."""
+    n = xy.shape[0]
+    counts = np.zeros(len(yaws), np.int64)
+    local = np.empty((n, 2))
+    for j in range(len(yaws)):
+        c, s = math.cos(yaws[j]), math.sin(yaws[j])
+        for i in range(n):
+            local[i, 0] = c * xy[i, 0] + s * xy[i, 1]
+            local[i, 1] = c * xy[i, 1] - s * xy[i, 0]
+        near_low, near_high = near_planes(local, tol)
+        for i in range(n):
+            if near_low[i, 0] or near_low[i, 1] or near_high[i, 0] or near_high[i, 1]:
+                counts[j] += 1
+    return counts
