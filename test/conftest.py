@@ -15,6 +15,7 @@ import pytest
 def compiled_kernels():
     from damon_ros.core.limits import joint_limits
     from damon_ros.core.robot import Robot
+    from damon_ros.perception import fit_kernels
     from damon_ros.planning import path_shortcutting, rrt_connect, space_time
     from damon_ros.planning.follower import CommandShaper
 
@@ -24,3 +25,4 @@ def compiled_kernels():
     path_shortcutting.warm_up(spheres)
     space_time.warm_up(robot)
     CommandShaper(joint_limits("fr3"))  # its kernels and the FR3's velocity bounds
+    fit_kernels.warm_up()  # the tracker's shape fits

@@ -50,6 +50,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
+from damon_ros.perception import fit_kernels
 from damon_ros.perception.camera import Camera, load_camera
 from damon_ros.perception.tracker_config import load_tracker_config
 from damon_ros.perception.tracking import Track, Tracker
@@ -233,6 +234,7 @@ class TrackerNode(Node):
         self.problems = ProblemLog(self.get_logger().warning, p["warn_every_s"])
         self.stats = LatencyStats.empty()
         self.tracker = Tracker(self.views[0].calibration, self.config)
+        fit_kernels.warm_up()  # before the first frame, not during it
         self.late_frames = 0  # frames older than one of another camera already tracked
         self._newest_stamp = -math.inf
         self._shown: set[tuple[str, int]] = set()

@@ -221,3 +221,21 @@ def face_counts(xy: np.ndarray, yaws: np.ndarray, tol: float) -> np.ndarray:
             if near_low[i, 0] or near_low[i, 1] or near_high[i, 0] or near_high[i, 1]:
                 counts[j] += 1
     return counts
+
+
+@njit(cache=True)
+def median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array (numpy's generic machinery costs ~50 us a call,
+    several times the work on a blob's few hundred values)."""
+    return np.median(values)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) every kernel now: a first compile takes
+    ~10 s, which must not fall on a tracker's first frame."""
+    points = np.random.default_rng(0).normal(size=(16, 3))
+    sphere_fit(points, 1)
+    circle_fits(points, points[:2].copy(), points[2:4].copy())
+    near_planes(points, 0.01)
+    face_counts(np.ascontiguousarray(points[:, :2]), np.arange(0.0, 1.0, 0.5), 0.01)
+    median(points[:, 0].copy())

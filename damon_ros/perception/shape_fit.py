@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
-from damon_ros.perception.fit_kernels import sphere_fit
+from damon_ros.perception.fit_kernels import median, sphere_fit
 from damon_ros.perception.segmentation import Blob
 from damon_ros.perception.tight_fit import fit_box, fit_cylinder, hull_points
 from damon_ros.perception.tracker_config import TrackerConfig
@@ -41,15 +41,15 @@ def blob_points(camera: Camera, blob: Blob, config: TrackerConfig) -> np.ndarray
         u, v, z = u[thin], v[thin], z[thin]
     if z.size == 0:
         return np.empty((0, 3))
-    median = float(np.median(z))
-    mad = float(np.median(np.abs(z - median)))
+    middle = median(z)
+    mad = median(np.abs(z - middle))
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
     # A convex surface is about as deep as the blob is wide: a face seen at a grazing angle
     # (a box's top from a camera beside it) spans ~0.2 m of depth with a MAD of ~2 cm, and
     # a cut at the MAD alone dropped its far third (side camera: 55 % of boxes contained).
     # Bleeding background lies a metre or more away: still far beyond this.
-    lateral = max(float(np.ptp(u)) / fx, float(np.ptp(v)) / fy) * median
-    inlier = np.abs(z - median) <= max(config.mad_k * MAD_TO_SIGMA * mad, config.mad_floor_m,
+    lateral = max(float(np.ptp(u)) / fx, float(np.ptp(v)) / fy) * middle
+    inlier = np.abs(z - middle) <= max(config.mad_k * MAD_TO_SIGMA * mad, config.mad_floor_m,
                                        lateral)
     z = z[inlier]
     return np.stack([(u[inlier] - cx) / fx * z, (v[inlier] - cy) / fy * z, z], axis=1)

@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
-from damon_ros.perception.fit_kernels import circle_fits, face_counts, near_planes
+from damon_ros.perception.fit_kernels import circle_fits, face_counts, median, near_planes
 from damon_ros.perception.tracker_config import TrackerConfig
 
 FACE_SHARE = 0.04
@@ -86,12 +86,12 @@ def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     only = mask & ~(near_low[:, 2] | near_high[:, 2])  # not the top or bottom face
     xy = points[only if only.sum() >= 10 else mask, :2]
     xy = xy - xy.mean(axis=0)
-    _, _, vt = np.linalg.svd(xy, full_matrices=False)
-    normal = vt[1]  # the face's normal in the plane: the least spread direction
+    _, vectors = np.linalg.eigh(xy.T @ xy)  # ascending spread (an SVD of xy, for 2 x 2)
+    normal = vectors[:, 0]  # the face's normal in the plane: the least spread direction
     face_axis = best // 2  # the face is across this box axis: its normal is that axis
     angle = math.atan2(normal[1], normal[0]) - (0.0 if face_axis == 0 else 0.5 * math.pi)
     # the same axes modulo a quarter turn, nearest the rectangle's estimate
-    width = float(np.ptp(xy @ vt[0]))
+    width = float(np.ptp(xy @ vectors[:, 1]))
     return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
 
 
@@ -261,7 +261,7 @@ def _skewed(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray, lo: 
             how = ends_by[k][side]
             if how == "face":
                 along = local[near[:, k], j]
-                middle = min(max(_median(along), float(lo[j])), float(hi[j]))
+                middle = min(max(median(along), float(lo[j])), float(hi[j]))
                 grow.append(error * max(float(hi[j]) - middle, middle - float(lo[j])))
             else:
                 grow.append(0.0 if how == "corner" else error * extent)
@@ -324,14 +324,6 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
     return sign * max(bound, extreme), corner
 
 
-def _median(values: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D array by one partition (np.median's generic
-    machinery costs ~50 us a call, a few times what the partition does)."""
-    n = len(values)
-    part = np.partition(values, [(n - 1) // 2, n // 2])
-    return 0.5 * float(part[(n - 1) // 2] + part[n // 2])
-
-
 def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
                  visible: np.ndarray, low: np.ndarray, high: np.ndarray,
                  tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -344,8 +336,8 @@ def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
         for side, near, out in ((0, near_low, low), (1, near_high, high)):
             if visible[k, side]:
                 values = local[near[:, k], k]
-                plane = _median(values)
-                out[k] = _median(values[np.abs(values - plane) <= tol])
+                plane = median(values)
+                out[k] = median(values[np.abs(values - plane) <= tol])
     return low, high
 
 
@@ -378,7 +370,7 @@ def _tilted(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
             if only.sum() < 10:
                 continue
             face = local[only] - local[only].mean(axis=0)
-            normal = np.linalg.svd(face, full_matrices=False)[2][2]
+            normal = np.linalg.eigh(face.T @ face)[1][:, 0]  # least spread: the normal
             if abs(normal[k]) < math.cos(MAX_FACE_TILT_RAD):
                 return True
     return False
@@ -401,8 +393,8 @@ def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfi
     cloud = np.vstack([p, far])
     # a step and a half of the downsampled grid: the opening (segmentation) cuts the sharp
     # corners of a silhouette by more than the outline's refinement reaches
-    margin = spacing_m(camera, config, float(np.median(p[:, 2]))) * 1.5 * config.downsample \
-        + config.surface_margin_m
+    depth = median(np.ascontiguousarray(p[:, 2]))
+    margin = spacing_m(camera, config, depth) * 1.5 * config.downsample + config.surface_margin_m
     try:
         cloud = cloud[ConvexHull(cloud).vertices]
     except (QhullError, ValueError):
