@@ -42,3 +42,25 @@ def test_freed_frame_memory_is_reused_not_faulted_in_again():
 def test_malloc_settings_from_the_environment_are_kept():
     env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="131072")
     assert "environment" in _render_in_a_process("keep", env)["why"]
+
+
+THREADS = """
+import cv2
+from damon_ros.ros.environment import limit_threads
+limit_threads()
+print(cv2.getNumThreads())
+"""
+
+
+def _opencv_threads(env: dict) -> int:
+    out = subprocess.run([sys.executable, "-c", THREADS], capture_output=True, text=True,
+                         timeout=120, env=env, check=True).stdout
+    return int(out.strip().splitlines()[-1])
+
+
+def test_opencv_runs_single_threaded_unless_the_user_says_otherwise():
+    from damon_ros.ros.environment import THREAD_VARIABLES
+
+    clean = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
+    assert _opencv_threads(clean) == 1
+    assert _opencv_threads(dict(clean, OPENCV_FOR_THREADS_NUM="3")) == 3
