@@ -4,7 +4,9 @@ The same pieces as on the robot — the runtime loop, the PID trajectory followe
 arm's actuator model — stepped on a simulated clock. Perception is ideal (ground-truth
 shapes delivered at the camera rate with a configurable latency and noise) or the real
 tracker on rendered frames. Planning time is charged honestly: while a plan is computed
-the simulated world (and the obstacles) move on by the measured wall time.
+the simulated world (and the obstacles) move on by the measured wall time. As in the planner
+node, a threat to the running trajectory stops the arm as soon as it is found (the runtime's
+``on_threat``), not only once the re-route that follows it is decided.
 
 Each run is scored as ../shared/scenarios/FORMAT.md says: contact is measured on the exact
 meshes at every simulated step (a step the conservative fast model certifies farther than
@@ -16,6 +18,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -25,6 +28,7 @@ from damon_ros.perception.unseen import Estimate, unseen_blockers, unseen_reason
 from damon_ros.planning.follower import TrajectoryFollower
 from damon_ros.planning.graph_planner import PoseGoal
 from damon_ros.planning.reactive import Event, ReactivePlanner
+from damon_ros.planning.trajectory import Trajectory
 from damon_ros.simulation.mock_arm import ArmSim
 
 
@@ -139,6 +143,15 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     next_camera, held_since = 0.0, None
 
     pending: list = []  # (activation, decision time, event): takes effect once computed
+    threat: dict = {}  # the running update's start (perf_counter) and when it found a threat
+    chained = runtime.on_threat
+
+    def on_threat(why: str) -> None:
+        threat["found"] = time.perf_counter() - threat["started"]
+        if chained is not None:
+            chained(why)
+
+    runtime.on_threat = on_threat
 
     def decide(event: Event | None, now: float) -> float:
         """Queue a runtime event to act when its computation (measured wall time) is over;
@@ -149,10 +162,24 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
         pending.append((ready, now, event))
         return ready
 
+    def update(now: float) -> float:
+        """`ReactivePlanner.update` on the newest frame; returns when its decision acts. A
+        threat found on the way stops the arm from then (`_Stop`), as the node does."""
+        q_measured, qd_measured = sim.q.copy(), sim.qd.copy()
+        threat.clear()
+        threat["started"] = time.perf_counter()
+        event = runtime.update(now, q_measured, perception.observe(now), qd_now=qd_measured)
+        if "found" in threat:
+            stop = runtime.planner.stop_trajectory(q_measured, qd_measured)
+            pending.append((now + threat["found"], now, _Stop(stop)))
+        return decide(event, now)
+
     def act(now: float) -> None:
         while pending and pending[0][0] <= now:
             _, decided, event = pending.pop(0)
-            if event.kind == "trajectory":
+            if isinstance(event, _Stop):
+                _stop(follower, event.trajectory, decided, sim.q, record)
+            elif event.kind == "trajectory":
                 tr = event.result.trajectory
                 # one that starts moving (a brake from the measured state, then a route or
                 # an escape) is stamped with the time of that state, as the node stamps its
@@ -196,8 +223,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
                     waiting = None
                 busy_until = decide(event, t)
             elif waiting is None and t >= busy_until:  # the newest frame once it is free
-                busy_until = decide(runtime.update(t, sim.q, perception.observe(t),
-                                                  qd_now=sim.qd), t)
+                busy_until = update(t)
         u = follower.update(t, sim.q)
         sim.command(u, t)
         t += config.control_dt
@@ -229,6 +255,29 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
     if waiting is not None and record.error is None:
         record.error = f"goal still waiting for a better view at the time limit: {waiting[1]}"
     return _finish(record, runtime, scenario, t)
+
+
+class _Stop(NamedTuple):
+    """The stop the planner node sends when it finds a threat (`GraphPlanner.stop_trajectory`
+    from the measured state, stamped with that state's time), before it re-routes."""
+
+    trajectory: Trajectory
+
+
+def _stop(follower: TrajectoryFollower, stop: Trajectory, measured_at: float,
+          q_now: np.ndarray, record: RunRecord) -> None:
+    """Send a `_Stop` to the follower as the controller node takes it: a brake from the
+    measured state (the arm has coasted on along it since), or a hold of an arm at rest;
+    a brake it cannot follow is braked from the arm's own state instead."""
+    if stop.times.size <= 2:
+        follower.hold(q_now)
+        return
+    try:
+        follower.set_trajectory(stop.times, stop.positions, stop.velocities,
+                                stop.accelerations, start_time=measured_at)
+    except ValueError:
+        record.trajectories_refused += 1
+        follower.brake()
 
 
 def _unseen_refusal(event: Event, perception: _Perception, runtime: ReactivePlanner,
