@@ -2,30 +2,37 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
-import yaml
 
-from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.robot import Robot
-from damon_ros.core.scenario import parse_scenario
+from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.learning.bundle import DamonModel
-from damon_ros.planning.graph_planner import GraphPlanner, PlanResult
-from damon_ros.planning.reactive import ReactivePlanner
+from damon_ros.planning.graph_planner import GraphPlanner
+from damon_ros.planning.reactive import Event, ReactivePlanner
 from damon_ros.simulation import closed_loop
-from damon_ros.simulation.closed_loop import SimConfig, pose_goal, run_scenario
+from damon_ros.simulation.closed_loop import SimConfig, run_scenario
 
-SLOW_S = 1.0
-"""Wall time every re-route takes in the test: long past a brake (~0.3 s from 2 rad/s)."""
+SLOW_MS = 1000.0
+"""How long the re-route after the threat takes (charged as its decision time): long past a
+brake from full speed (~0.3 s)."""
+FAST_RAD_S = 1.5
 
 
-class _SlowReroute(GraphPlanner):
-    """Re-routes take `SLOW_S` and find nothing (a fallback search that runs out)."""
+class _ThreatAtSpeed(ReactivePlanner):
+    """The first update that finds the arm at `FAST_RAD_S` finds a threat (`on_threat`, as
+    `ReactivePlanner.update` calls it) and then takes `SLOW_MS` to decide on a hold: a
+    fallback search that runs out. Triggered by the arm's speed, not the clock, so that a
+    late start on a loaded machine does not move it."""
 
-    def replan(self, *args, **kwargs) -> PlanResult:
-        time.sleep(SLOW_S)
-        return PlanResult(False, "no route (slow on purpose)")
+    threat_at: float | None = None
+
+    def update(self, t, q_now, obstacles, perception_age_s=0.0, qd_now=None) -> Event | None:
+        if self.threat_at is None and qd_now is not None and np.max(np.abs(qd_now)) > FAST_RAD_S:
+            self.threat_at = t
+            if self.on_threat is not None:  # as ReactivePlanner.update calls it
+                self.on_threat("a threat (test)")
+            return self._hold("a threat (test); no route (test)", None, SLOW_MS)
+        return super().update(t, q_now, obstacles, perception_age_s, qd_now)
 
 
 def test_a_threat_stops_the_arm_before_a_slow_reroute_is_decided(monkeypatch):
@@ -42,38 +49,11 @@ def test_a_threat_stops_the_arm_before_a_slow_reroute_is_decided(monkeypatch):
 
     monkeypatch.setattr(closed_loop, "ArmSim", Recorded)
     fast, mesh = Robot("fast"), Robot("mesh")
-    planner = _SlowReroute(DamonModel.load().graph, fast, fast.limits)
+    planner = GraphPlanner(DamonModel.load().graph, fast, fast.limits)
     planner.warm_up()
-    data = yaml.safe_load((public_scenarios_dir() / "A-001.yaml").read_text())
-    first = planner.plan(parse_scenario(data).start, pose_goal(parse_scenario(data)),
-                         parse_scenario(data).obstacles_at(0.0)).trajectory
-    # a ball rolls in from the side (1 m/s) to where the hand will be 60 % into its move
-    k = int(np.searchsorted(first.times, 0.6 * first.times[-1]))
-    target = fast.tcp_positions(first.positions[k][None])[0]
-    far = target + [0.0, 0.8, 0.0]
-    data["obstacles"].append({
-        "name": "roller", "shape": "sphere", "size": [0.04], "color": "blue",
-        "pose": {"position": far.tolist(), "orientation": [0.0, 0.0, 0.0, 1.0]},
-        "motion": {"type": "waypoints",
-                   "waypoints": [[0.0, *far], [0.4, *far], [1.2, *target]]}})
-    data["time_limit"] = 2.0
-    runtime = ReactivePlanner(planner)
-    found: list[float] = []
-    update = runtime.update
-
-    def recorded_update(t, *args, **kwargs):
-        found.append(t)
-        return update(t, *args, **kwargs)
-
-    threats: list[float] = []
-    runtime.update = recorded_update
-    runtime.on_threat = lambda why: threats.append(found[-1])
-    run_scenario(parse_scenario(data), runtime, "damon", mesh, fast, SimConfig())
-    assert threats, "the rolling ball never threatened the trajectory"
+    runtime = _ThreatAtSpeed(planner)
+    run_scenario(load_public_scenarios(["A-001"])[0], runtime, "damon", mesh, fast, SimConfig())
+    assert runtime.threat_at is not None, "the arm never reached full speed"
     times, speed = np.array(speeds).T
-    at_threat = speed[np.searchsorted(times, threats[0])]
-    assert at_threat > 1.0  # the arm was moving fast when the threat was found
-    # the re-route is decided SLOW_S after the threat; the stop has acted long before that
-    later = np.searchsorted(times, threats[0] + 0.3 * SLOW_S)
-    assert later < len(times), "the run ended (contact?) before the stop could act"
-    assert speed[later] < 0.25 * at_threat, (at_threat, speed[later])
+    later = np.searchsorted(times, runtime.threat_at + 0.3)  # the hold acts after 1 s
+    assert speed[later] < 0.2 * FAST_RAD_S, speed[later]  # coasting on: ~2 rad/s
