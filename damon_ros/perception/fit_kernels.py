@@ -230,6 +230,100 @@ def median(values: np.ndarray) -> float:
     return np.median(values)
 
 
+
+@njit(cache=True)
+def face_line(points: np.ndarray, near_low: np.ndarray,
+              near_high: np.ndarray) -> tuple[int, float, float]:
+    """The best-populated vertical face of a box frame (the low / high planes of the box's x
+    and y axes, `near_planes`) seen from above: its index (``2 * axis + side``; -1 when no
+    face has 10 points), the direction of its normal (rad, in the base's xy plane; the least
+    spread direction of its points, a total-least-squares line) and its width (the spread
+    along the line). Its points that also lie on the top or bottom plane are left out when
+    10 remain without them."""
+    n = points.shape[0]
+    counts = np.zeros(4, np.int64)
+    for i in range(n):
+        for f in range(4):
+            if (near_low if f % 2 == 0 else near_high)[i, f // 2]:
+                counts[f] += 1
+    best = 0
+    for f in range(1, 4):
+        if counts[f] > counts[best]:
+            best = f
+    if counts[best] < 10:
+        return -1, 0.0, 0.0
+    mask = (near_low if best % 2 == 0 else near_high)[:, best // 2]
+    only = mask.copy()
+    for i in range(n):
+        only[i] = mask[i] and not (near_low[i, 2] or near_high[i, 2])
+    if only.sum() >= 10:
+        mask = only
+    count = mask.sum()
+    mx = my = 0.0
+    for i in range(n):
+        if mask[i]:
+            mx += points[i, 0]
+            my += points[i, 1]
+    mx /= count
+    my /= count
+    sxx = syy = sxy = 0.0
+    for i in range(n):
+        if mask[i]:
+            dx, dy = points[i, 0] - mx, points[i, 1] - my
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+    major = 0.5 * math.atan2(2.0 * sxy, sxx - syy)  # the direction of most spread
+    c, s = math.cos(major), math.sin(major)
+    low, high = np.inf, -np.inf
+    for i in range(n):
+        if mask[i]:
+            along = (points[i, 0] - mx) * c + (points[i, 1] - my) * s
+            low, high = min(low, along), max(high, along)
+    return best, major + 0.5 * math.pi, high - low
+
+
+@njit(cache=True)
+def face_tilts(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
+               visible: np.ndarray) -> np.ndarray:
+    """Per face of a box frame (3 axes x low / high), the |component along its own axis| of
+    the normal of the plane through its own points (those on no other face), or 1.0 (not
+    tilted) for a face not visible or with fewer than 10 such points."""
+    n = local.shape[0]
+    out = np.ones((3, 2))
+    only = np.empty(n, np.bool_)
+    for k in range(3):
+        for side in range(2):
+            if not visible[k, side]:
+                continue
+            near = near_low if side == 0 else near_high
+            count = 0
+            for i in range(n):
+                other = False
+                for j in range(3):
+                    if j != k and (near_low[i, j] or near_high[i, j]):
+                        other = True
+                only[i] = near[i, k] and not other
+                count += only[i]
+            if count < 10:
+                continue
+            mean = np.zeros(3)
+            for i in range(n):
+                if only[i]:
+                    for j in range(3):
+                        mean[j] += local[i, j]
+            mean /= count
+            scatter = np.zeros((3, 3))
+            for i in range(n):
+                if only[i]:
+                    for a in range(3):
+                        for b in range(3):
+                            scatter[a, b] += (local[i, a] - mean[a]) * (local[i, b] - mean[b])
+            normal = np.linalg.eigh(scatter)[1][:, 0]  # least spread: the normal
+            out[k, side] = abs(normal[k])
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from numba's disk cache) every kernel now: a first compile takes
     ~10 s, which must not fall on a tracker's first frame."""
@@ -239,3 +333,6 @@ def warm_up() -> None:
     near_planes(points, 0.01)
     face_counts(np.ascontiguousarray(points[:, :2]), np.arange(0.0, 1.0, 0.5), 0.01)
     median(points[:, 0].copy())
+    near = np.ones((16, 3), np.bool_)
+    face_line(points, near, near)
+    face_tilts(points, near, near, np.ones((3, 2), np.bool_))

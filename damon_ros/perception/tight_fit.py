@@ -37,7 +37,14 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
-from damon_ros.perception.fit_kernels import circle_fits, face_counts, median, near_planes
+from damon_ros.perception.fit_kernels import (
+    circle_fits,
+    face_counts,
+    face_line,
+    face_tilts,
+    median,
+    near_planes,
+)
 from damon_ros.perception.tracker_config import TrackerConfig
 
 FACE_SHARE = 0.04
@@ -77,21 +84,12 @@ def _face_yaw(points: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     """The yaw of the best-populated vertical face, by a total-least-squares line through its
     points seen from above (``yaw`` itself when no face has enough points), and the face's
     width (the yaw of a narrow face is uncertain)."""
-    counts = [near_low[:, 0].sum(), near_high[:, 0].sum(), near_low[:, 1].sum(),
-              near_high[:, 1].sum()]
-    best = int(np.argmax(counts))
-    if counts[best] < 10:
+    face, normal, width = face_line(points, near_low, near_high)  # compiled: every box
+    if face < 0:
         return yaw, 0.0
-    mask = (near_low if best % 2 == 0 else near_high)[:, best // 2]
-    only = mask & ~(near_low[:, 2] | near_high[:, 2])  # not the top or bottom face
-    xy = points[only if only.sum() >= 10 else mask, :2]
-    xy = xy - xy.mean(axis=0)
-    _, vectors = np.linalg.eigh(xy.T @ xy)  # ascending spread (an SVD of xy, for 2 x 2)
-    normal = vectors[:, 0]  # the face's normal in the plane: the least spread direction
-    face_axis = best // 2  # the face is across this box axis: its normal is that axis
-    angle = math.atan2(normal[1], normal[0]) - (0.0 if face_axis == 0 else 0.5 * math.pi)
+    # the face is across box axis face // 2: its normal is that axis
+    angle = normal - (0.0 if face // 2 == 0 else 0.5 * math.pi)
     # the same axes modulo a quarter turn, nearest the rectangle's estimate
-    width = float(np.ptp(xy @ vectors[:, 1]))
     return yaw + (angle - yaw + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi, width
 
 
@@ -358,22 +356,8 @@ def _tilted(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     tilted more than `MAX_FACE_TILT_RAD` from the upright box's: a small tilted box puts
     enough of its points within the face tolerance of upright planes to pass as one, and
     its hidden corners then stick out of the upright bound."""
-    near = (near_low, near_high)
-    on_any = near_low | near_high
-    for k in range(3):
-        for side in (0, 1):
-            if not visible[k, side]:
-                continue
-            others = on_any.copy()
-            others[:, k] = False
-            only = near[side][:, k] & ~others.any(axis=1)
-            if only.sum() < 10:
-                continue
-            face = local[only] - local[only].mean(axis=0)
-            normal = np.linalg.eigh(face.T @ face)[1][:, 0]  # least spread: the normal
-            if abs(normal[k]) < math.cos(MAX_FACE_TILT_RAD):
-                return True
-    return False
+    tilts = face_tilts(np.ascontiguousarray(local), near_low, near_high, visible)
+    return bool(np.any(tilts < math.cos(MAX_FACE_TILT_RAD)))
 
 
 def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,
