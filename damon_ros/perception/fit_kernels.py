@@ -112,6 +112,15 @@ def circle_fits(points: np.ndarray, u_axes: np.ndarray,
 
 
 @njit(cache=True)
+def _accumulate(normal: np.ndarray, right: np.ndarray, row: np.ndarray, b: float) -> None:
+    """Add one equation ``row . x = b`` to the normal equations ``normal x = right``."""
+    for a in range(len(row)):
+        right[a] += row[a] * b
+        for c in range(len(row)):
+            normal[a, c] += row[a] * row[c]
+
+
+@njit(cache=True)
 def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, float, bool]:
     """Least-squares sphere of ``points`` (N x 3, N >= 4): centre, radius, rms residual, and
     False when the points fix none (coplanar).
@@ -131,11 +140,7 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
     row = np.empty(4)
     for i in range(n):
         row[0], row[1], row[2], row[3] = 2.0 * q[i, 0], 2.0 * q[i, 1], 2.0 * q[i, 2], 1.0
-        b = q[i, 0] ** 2 + q[i, 1] ** 2 + q[i, 2] ** 2
-        for a in range(4):
-            right[a] += row[a] * b
-            for c in range(4):
-                normal[a, c] += row[a] * row[c]
+        _accumulate(normal, right, row, q[i, 0] ** 2 + q[i, 1] ** 2 + q[i, 2] ** 2)
     sol, ok = _solve(normal, right)
     if not ok:
         return mean, 0.0, 0.0, False
@@ -148,11 +153,7 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
             dx, dy, dz = q[i, 0] - centre[0], q[i, 1] - centre[1], q[i, 2] - centre[2]
             dist = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             row[0], row[1], row[2], row[3] = dx / dist, dy / dist, dz / dist, 1.0
-            b = dist - radius
-            for a in range(4):
-                right[a] += row[a] * b
-                for c in range(4):
-                    normal[a, c] += row[a] * row[c]
+            _accumulate(normal, right, row, dist - radius)
         step, ok = _solve(normal, right)
         if not ok:
             break
