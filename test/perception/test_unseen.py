@@ -74,9 +74,9 @@ def test_a_goal_behind_a_wall_waits_and_is_dropped_naming_its_unseen_part_unless
     data["obstacles"] = [{"name": "wall", "shape": "box", "size": [0.03, 0.12, 1.0],
                           "color": "red", "pose": {"position": [g[0] + 0.125, g[1], 0.7],
                                                    "orientation": [0, 0, 0, 1]}}]
-    # the goal is reached at 3-7 s of simulated time: each decision is charged its wall
-    # time, so it came at 6.6 s with about five CPU-bound processes on the 2 cores (and
-    # failed twice at 8 s); the test is about reaching it at all
+    # each decision is charged its wall time: with about five CPU-bound processes on the
+    # 2 cores the goal came at 6.6 s of scenario time (and twice not within 8 s); the test
+    # is about reaching it at all
     data["time_limit"] = 15.0
     scenario = parse_scenario(data, "wall")
     model, fast, mesh = DamonModel.load(), Robot("fast"), Robot("mesh")
