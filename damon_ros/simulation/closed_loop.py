@@ -186,11 +186,7 @@ def run_scenario(scenario: Scenario, runtime: ReactivePlanner, name: str, mesh, 
                 # brakes: the arm has coasted on along it while it was computed, and is
                 # taken from there, not sent back to its first point (a jump refused)
                 start = decided if np.any(tr.velocities[0] != 0.0) else now
-                try:
-                    follower.set_trajectory(tr.times, tr.positions, tr.velocities,
-                                            tr.accelerations, start_time=start)
-                except ValueError:  # as the controller node: refused, what runs goes on
-                    record.trajectories_refused += 1
+                _send(follower, tr, start, record)  # refused: what runs goes on
             elif event.kind == "hold":
                 follower.hold(sim.q)
 
@@ -271,13 +267,21 @@ def _stop(follower: TrajectoryFollower, stop: Trajectory, measured_at: float,
     a brake it cannot follow is braked from the arm's own state instead."""
     if stop.times.size <= 2:
         follower.hold(q_now)
-        return
+    elif not _send(follower, stop, measured_at, record):
+        follower.brake()
+
+
+def _send(follower: TrajectoryFollower, trajectory: Trajectory, start: float,
+          record: RunRecord) -> bool:
+    """Hand ``trajectory`` (time 0 at ``start``) to the follower; False, counted in
+    ``record``, when the follower refuses it (as the controller node does)."""
     try:
-        follower.set_trajectory(stop.times, stop.positions, stop.velocities,
-                                stop.accelerations, start_time=measured_at)
+        follower.set_trajectory(trajectory.times, trajectory.positions, trajectory.velocities,
+                                trajectory.accelerations, start_time=start)
     except ValueError:
         record.trajectories_refused += 1
-        follower.brake()
+        return False
+    return True
 
 
 def _unseen_refusal(event: Event, perception: _Perception, runtime: ReactivePlanner,
