@@ -111,6 +111,28 @@ def _extend(nodes, parents, counts, tree, target, step, margins, resolution, rob
     return k, status
 
 
+LOCAL_RAD = 0.3
+"""Half-width (rad per joint) of the box around a node of the smaller tree that half of its
+samples come from while it is under a tenth of the other's size."""
+
+
+@njit(cache=True)
+def _target(nodes, counts, tree, lower, upper):
+    """A sample for ``tree``: uniform in the joint box, or, while the tree is stuck in a
+    pocket (under a tenth of the other tree's nodes), half the time near one of its nodes.
+    A grasp goal between shelf boards grew 14 nodes in 33,000 uniform samples: from there
+    almost every direction hits a board within the first step."""
+    n = lower.shape[0]
+    if counts[tree] * 10 < counts[1 - tree] and np.random.random() < 0.5:
+        base = nodes[tree, np.random.randint(counts[tree])]
+        out = np.empty(n)
+        for i in range(n):
+            x = base[i] + (2.0 * np.random.random() - 1.0) * LOCAL_RAD
+            out[i] = min(max(x, lower[i]), upper[i])
+        return out
+    return lower + np.random.random(n) * (upper - lower)
+
+
 @njit(cache=True)
 def _search(nodes, parents, counts, lower, upper, step, margins, resolution, iterations, state,
             robot, obstacles, first):
@@ -120,7 +142,7 @@ def _search(nodes, parents, counts, lower, upper, step, margins, resolution, ite
         a = state[0]
         b = 1 - a
         state[0] = b
-        target = lower + np.random.random(lower.shape[0]) * (upper - lower)
+        target = _target(nodes, counts, a, lower, upper)
         new, _ = _extend(nodes, parents, counts, a, target, step, margins, resolution, robot,
                          obstacles, first)
         if new < 0:
