@@ -279,7 +279,9 @@ def main(argv: list[str] | None = None) -> int:
                              "--results): only the page's stress section is rewritten")
     parser.add_argument("--stress-command", default="",
                         help="the commands that produced --stress (quoted in the page)")
-    parser.add_argument("--mbm", default=None, help="MotionBenchMaker results (JSON lines)")
+    parser.add_argument("--mbm", default=None,
+                        help="MotionBenchMaker results (JSON lines); alone, only the page's "
+                             "MotionBenchMaker section is rewritten")
     parser.add_argument("--mbm-command", default="", help="the command that produced --mbm")
     parser.add_argument("--tracker", action="append", default=[],
                         help="damon-ros bench-tracker --out results (JSON lines); repeatable")
@@ -289,8 +291,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if len(args.tracker_command) != len(args.tracker):
         parser.error("give one --tracker-command for each --tracker file")
-    if not args.results and not args.tracker and not args.stress:
-        parser.error("give --results (the whole page), --stress or --tracker (their sections)")
+    if not (args.results or args.tracker or args.stress or args.mbm):
+        parser.error("give --results (the whole page), --stress, --mbm or --tracker (their "
+                     "sections)")
     if args.results and not args.results_command:
         parser.error("--results needs --results-command")
     runs = {}
@@ -303,6 +306,11 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     if args.results:
         write_page(args, out)
+    if args.mbm:
+        write_marked(out, "mbm", [
+            "## MotionBenchMaker (static, many obstacles, joint goals; plan once)", "",
+            f"`{args.mbm_command}`", "", *mbm_table(load(args.mbm)), "",
+            f"Published reference: {PUBLISHED_MBM}", ""])
     if runs:
         write_marked(out, "stress", stress_section(runs, args.stress_command, out.parent))
     if args.tracker:
@@ -315,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def write_page(args: argparse.Namespace, out: Path) -> None:
-    """The page from ``--results`` (and ``--mbm``); marked sections of the old page kept."""
+    """The page from ``--results``; marked sections of the old page (MotionBenchMaker's,
+    the stress bench's, ...) kept."""
     records = load(args.results)
     figures = plots(records, out.parent)
     lines = ["# Benchmarks", "",
@@ -327,10 +336,6 @@ def write_page(args: argparse.Namespace, out: Path) -> None:
              "## DAMON against OMPL on the same runs (all public scenarios)", "",
              f"`{args.results_command}`", "", *planner_table(records), "",
              *[f"![distributions]({f.name})" for f in figures], ""]
-    if args.mbm:
-        lines += ["## MotionBenchMaker (static, many obstacles, joint goals; plan once)", "",
-                  f"`{args.mbm_command}`", "", *mbm_table(load(args.mbm)), "",
-                  f"Published reference: {PUBLISHED_MBM}", ""]
     kept = _marked_sections(out.read_text()) if out.exists() else []
     out.write_text("\n".join(lines + kept) + "\n")
 
