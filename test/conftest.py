@@ -15,7 +15,7 @@ import pytest
 def compiled_kernels():
     from damon_ros.core.limits import joint_limits
     from damon_ros.core.robot import Robot
-    from damon_ros.perception import fit_kernels
+    from damon_ros.perception import colour_classes, fit_kernels
     from damon_ros.planning import path_shortcutting, rrt_connect, space_time
     from damon_ros.planning.follower import CommandShaper
 
@@ -26,3 +26,4 @@ def compiled_kernels():
     space_time.warm_up(robot)
     CommandShaper(joint_limits("fr3"))  # its kernels and the FR3's velocity bounds
     fit_kernels.warm_up()  # the tracker's shape fits
+    colour_classes.warm_up()  # and its colour segmentation

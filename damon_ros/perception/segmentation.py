@@ -14,6 +14,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from damon_ros.perception.colour_classes import ColourClasses
 from damon_ros.perception.tracker_config import TrackerConfig
 
 
@@ -61,13 +62,6 @@ def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
     return bool(np.any((d > 0) & (d < near)))
 
 
-def _class_mask(hsv: np.ndarray, ranges) -> np.ndarray:
-    mask = cv2.inRange(hsv, ranges[0][0], ranges[0][1])
-    for low, high in ranges[1:]:
-        mask |= cv2.inRange(hsv, low, high)
-    return mask
-
-
 class Segmenter:
     """HSV class masks -> cleaned connected components, only inside each class's bounding box.
 
@@ -82,23 +76,17 @@ class Segmenter:
         self.close = _kernel(config.close_kernel_px)
         self.min_area = max(1, int(math.ceil(config.min_area_px / self.step**2)))
         self.pad = max(int(config.open_kernel_px), int(config.close_kernel_px), 1)
+        self.classes = ColourClasses(config.colors)
+        self.each = {name: self.classes.only(name) for name in self.classes.names}
 
     def blobs(self, rgb: np.ndarray, depth: np.ndarray) -> list[Blob]:
         s = self.step
-        # Nearest-neighbour resize by an integer factor keeps pixels (s*i, s*j), as the depth
-        # slice below does, and is several times faster than copying a strided view.
-        small = rgb if s == 1 else cv2.resize(
-            rgb, (rgb.shape[1] // s, rgb.shape[0] // s), interpolation=cv2.INTER_NEAREST
-        )
-        depth_small = depth[::s, ::s]
-        hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
-        masks = {color: _class_mask(hsv, ranges) for color, ranges in self.config.colors.items()}
-        coloured = np.zeros(hsv.shape[:2], np.uint8)
-        for mask in masks.values():
-            coloured |= mask
+        # the pixels (s*i, s*j) of the colour frame, as the depth slice keeps them
+        masks, counts, coloured = self.classes.masks(rgb, s)
+        depth_small = depth[:masks.shape[1] * s:s, :masks.shape[2] * s:s]
         found: list[Blob] = []
-        for color, mask in masks.items():
-            if cv2.countNonZero(mask) < self.min_area:
+        for color, mask, count in zip(self.classes.names, masks, counts, strict=True):
+            if count < self.min_area:
                 continue
             for blob in self._components(color, mask, depth_small, (coloured > mask)):
                 found.append(self._refined(blob, rgb, depth))
@@ -126,8 +114,7 @@ class Segmenter:
                   for m in (grid, samples)]
         beyond = (grid == 0) & (around[1] > 0) & (around[1] < around[0])
         window = (slice(v0, v1), slice(u0, u1))
-        colour = _class_mask(cv2.cvtColor(rgb[window], cv2.COLOR_RGB2HSV),
-                             self.config.colors[blob.color])
+        colour = self.each[blob.color].masks(rgb[window])[0][0]
         rows, cols = np.nonzero(beyond & (colour > 0) & (depth[window] > 0))
         if not len(rows):
             return blob
