@@ -280,15 +280,29 @@ def _self_excess(mesh: Robot, models: dict[str, SphereModel], rng: np.random.Gen
     d_mesh = np.array(d_mesh).ravel()
     out = {}
     for name, m in models.items():
-        C = m.world_centers(Q)  # (N, S, 3)
-        cols = []
-        for ja, jb in pairs:
-            ia, ib = np.flatnonzero(m.joints == ja), np.flatnonzero(m.joints == jb)
-            d = (np.linalg.norm(C[:, ia, None] - C[:, None, ib], axis=-1)
-                 - m.radii[ia][:, None] - m.radii[ib][None])
-            cols.append(d.min(axis=(1, 2)))
-        out[name] = _excess(np.stack(cols, axis=1).ravel(), d_mesh)
+        # in chunks of configurations: the fitted model's joint pairs are up to a few
+        # hundred spheres each, and (N, Sa, Sb, 3) at once took 4.5 MB per configuration
+        d = np.concatenate([_pair_distances(m, Q[k:k + SELF_CHUNK], pairs)
+                            for k in range(0, len(Q), SELF_CHUNK)])
+        out[name] = _excess(d.ravel(), d_mesh)
     return len(d_mesh), out
+
+
+SELF_CHUNK = 64
+"""Configurations per batch of the sphere models' self-distances."""
+
+
+def _pair_distances(m: SphereModel, Q: np.ndarray, pairs) -> np.ndarray:
+    """(len(Q), len(pairs)): the least distance between the two joints' spheres of each
+    pair in each configuration."""
+    C = m.world_centers(Q)  # (N, S, 3)
+    cols = []
+    for ja, jb in pairs:
+        ia, ib = np.flatnonzero(m.joints == ja), np.flatnonzero(m.joints == jb)
+        d = (np.linalg.norm(C[:, ia, None] - C[:, None, ib], axis=-1)
+             - m.radii[ia][:, None] - m.radii[ib][None])
+        cols.append(d.min(axis=(1, 2)))
+    return np.stack(cols, axis=1)
 
 
 def _print_excess(name: str, e: ModelExcess) -> None:
