@@ -13,8 +13,14 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 
-from damon_ros.perception.colour_classes import ColourClasses
+from damon_ros.perception.colour_classes import (
+    ColourClasses,
+    frames_of_both_kinds,
+    in_range,
+    pixel_hsv,
+)
 from damon_ros.perception.tracker_config import TrackerConfig
 
 
@@ -62,6 +68,54 @@ def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
     return bool(np.any((d > 0) & (d < near)))
 
 
+@njit(cache=True)
+def _beyond_outline(rgb, depth, u, v, edge, u0, v0, u1, v1, step, lows, highs):
+    """Rows and columns (row-major) of the pixels of the window [v0, v1) x [u0, u1) that lie
+    between grid samples (every ``step``-th row and column), have a blob sample (``u``,
+    ``v``) and a grid sample that is not the blob's within ``step - 1`` pixels in both
+    axes (grid samples outside the window do not count), are of the blob's colour
+    (``lows``/``highs``) and have depth. Such a pixel's blob sample is on the outline
+    (``edge``: the other sample is its neighbour), so only the outline's surroundings are
+    visited."""
+    h, w = v1 - v0, u1 - u0
+    mine = np.zeros((h, w), np.bool_)
+    near = np.zeros((h, w), np.bool_)
+    r = step - 1
+    for k in range(u.shape[0]):
+        mine[v[k] - v0, u[k] - u0] = True
+        if edge[k]:
+            near[max(v[k] - v0 - r, 0):v[k] - v0 + r + 1,
+                 max(u[k] - u0 - r, 0):u[k] - u0 + r + 1] = True
+    s_min, v_min = lows[:, 1].min(), lows[:, 2].min()
+    rows, cols = [], []
+    for y in range(v0, v1):
+        for x in range(u0, u1):
+            if not near[y - v0, x - u0] or (y % step == 0 and x % step == 0) or \
+                    depth[y, x] == 0:
+                continue
+            grid = blob = 0
+            for gy in range(max(y - r, v0), min(y + step, v1)):
+                if gy % step:
+                    continue
+                for gx in range(max(x - r, u0), min(x + step, u1)):
+                    if gx % step == 0:
+                        grid += 1
+                        blob += mine[gy - v0, gx - u0]
+            if blob == 0 or blob == grid:
+                continue
+            px = rgb[y, x]
+            hh, ss, vv = pixel_hsv(np.int64(px[0]), np.int64(px[1]), np.int64(px[2]), s_min,
+                                   v_min)
+            if hh < 0:
+                continue
+            for k in range(lows.shape[0]):
+                if in_range(hh, ss, vv, lows, highs, k):
+                    rows.append(y)
+                    cols.append(x)
+                    break
+    return np.array(rows, np.int64), np.array(cols, np.int64)
+
+
 class Segmenter:
     """HSV class masks -> cleaned connected components, only inside each class's bounding box.
 
@@ -78,6 +132,11 @@ class Segmenter:
         self.pad = max(int(config.open_kernel_px), int(config.close_kernel_px), 1)
         self.classes = ColourClasses(config.colors)
         self.each = {name: self.classes.only(name) for name in self.classes.names}
+        none = np.zeros(0, np.int64)  # compiled (or loaded) now, not on the first blob
+        for image in frames_of_both_kinds():
+            _beyond_outline(image, np.zeros((1, 1), np.uint16), none, none,
+                            np.zeros(0, np.bool_), 0, 0, 1, 1, max(self.step, 1),
+                            self.classes.lows, self.classes.highs)
 
     def blobs(self, rgb: np.ndarray, depth: np.ndarray) -> list[Blob]:
         s = self.step
@@ -103,24 +162,14 @@ class Segmenter:
         u0, v0 = max(int(blob.u.min()) - s, 0), max(int(blob.v.min()) - s, 0)
         u1 = min(int(blob.u.max()) + s + 1, depth.shape[1])
         v1 = min(int(blob.v.max()) + s + 1, depth.shape[0])
-        # a pixel between samples lies beyond the outline when some of the grid samples
-        # around it (within a step) are not the blob's: count both in a step's square
-        grid = ((np.arange(v0, v1) % s == 0)[:, None]
-                & (np.arange(u0, u1) % s == 0)[None]).astype(np.uint8)
-        samples = np.zeros_like(grid)
-        samples[blob.v - v0, blob.u - u0] = 1
-        square = np.ones((2 * s - 1, 2 * s - 1), np.float32)
-        around = [cv2.filter2D(m, -1, square, borderType=cv2.BORDER_CONSTANT)
-                  for m in (grid, samples)]
-        beyond = (grid == 0) & (around[1] > 0) & (around[1] < around[0])
-        window = (slice(v0, v1), slice(u0, u1))
-        colour = self.each[blob.color].masks(rgb[window])[0][0]
-        rows, cols = np.nonzero(beyond & (colour > 0) & (depth[window] > 0))
+        own = self.each[blob.color]
+        rows, cols = _beyond_outline(rgb, depth, blob.u, blob.v, blob.edge, u0, v0, u1, v1, s,
+                                     own.lows, own.highs)
         if not len(rows):
             return blob
-        return blob._replace(u=np.concatenate([blob.u, cols + u0]),
-                             v=np.concatenate([blob.v, rows + v0]),
-                             depth_mm=np.concatenate([blob.depth_mm, depth[window][rows, cols]]),
+        return blob._replace(u=np.concatenate([blob.u, cols]),
+                             v=np.concatenate([blob.v, rows]),
+                             depth_mm=np.concatenate([blob.depth_mm, depth[rows, cols]]),
                              edge=np.concatenate([blob.edge, np.ones(len(rows), bool)]))
 
     def _roi(self, mask: np.ndarray) -> tuple[int, int, int, int]:
