@@ -112,6 +112,83 @@ def circle_fits(points: np.ndarray, u_axes: np.ndarray,
 
 
 @njit(cache=True)
+def circle_refine(xy: np.ndarray, cx: float, cy: float, radius: float,
+                  iterations: int) -> tuple[float, float, float, float]:
+    """Geometric circle fit of ``xy`` (N x 2): Gauss-Newton on ``|p - c| - r`` from the given
+    circle, by its 3 x 3 normal equations; the centre, radius and rms residual (the start
+    again, rms NaN, when a step's equations are singular)."""
+    n = xy.shape[0]
+    normal = np.empty((3, 3))
+    right = np.empty(3)
+    row = np.empty(3)
+    for _ in range(iterations):
+        normal[:] = 0.0
+        right[:] = 0.0
+        for i in range(n):
+            dx, dy = xy[i, 0] - cx, xy[i, 1] - cy
+            dist = max(math.sqrt(dx * dx + dy * dy), 1e-9)
+            row[0], row[1], row[2] = -dx / dist, -dy / dist, -1.0
+            _accumulate(normal, right, row, radius - dist)
+        step, ok = _solve(normal, right)
+        if not ok:
+            return cx, cy, radius, np.nan
+        cx, cy, radius = cx + step[0], cy + step[1], radius + step[2]
+    sq = 0.0
+    for i in range(n):
+        d = math.sqrt((xy[i, 0] - cx) ** 2 + (xy[i, 1] - cy) ** 2) - radius
+        sq += d * d
+    return cx, cy, radius, math.sqrt(sq / n)
+
+
+@njit(cache=True)
+def _unit_frame(axis: np.ndarray) -> np.ndarray:
+    """Columns u, v, axis (normalised): a right-handed frame around ``axis`` whose u is
+    across the base x axis (the y axis when ``axis`` is nearly along x)."""
+    a = axis / math.sqrt(axis @ axis)
+    helper = np.zeros(3)
+    helper[0 if abs(a[0]) < 0.9 else 1] = 1.0
+    u = np.array([a[1] * helper[2] - a[2] * helper[1], a[2] * helper[0] - a[0] * helper[2],
+                  a[0] * helper[1] - a[1] * helper[0]])
+    u /= math.sqrt(u @ u)
+    frame = np.empty((3, 3))
+    frame[:, 0] = u
+    frame[:, 1] = np.array([a[1] * u[2] - a[2] * u[1], a[2] * u[0] - a[0] * u[2],
+                            a[0] * u[1] - a[1] * u[0]])
+    frame[:, 2] = a
+    return frame
+
+
+@njit(cache=True)
+def roundest_axis(centred: np.ndarray, axis: np.ndarray, grid: np.ndarray,
+                  steps: np.ndarray) -> tuple[np.ndarray, float, float, float, float, bool]:
+    """The frame (columns u, v, axis) across whose plane the centred points (N x 3) are the
+    roundest, by coarse-to-fine grids of tilts about ``axis`` (``grid``: K x 2 tilts in
+    steps, each of ``steps`` in turn around the best so far), with that plane's algebraic
+    circle (`circle_fits`): frame, centre x, y, radius, rms, and False when no tilt had a
+    circle."""
+    frame = _unit_frame(axis)
+    k_all = grid.shape[0]
+    u_axes, v_axes = np.empty((k_all, 3)), np.empty((k_all, 3))
+    frames = np.empty((k_all, 3, 3))
+    best = (0.0, 0.0, 0.0, 0.0)
+    for step in steps:
+        for k in range(k_all):
+            tilt = np.array([math.tan(grid[k, 0] * step), math.tan(grid[k, 1] * step), 1.0])
+            frames[k] = _unit_frame(frame @ tilt)
+            u_axes[k], v_axes[k] = frames[k][:, 0], frames[k][:, 1]
+        centres, radii, rms = circle_fits(centred, u_axes, v_axes)
+        chosen = -1
+        for k in range(k_all):
+            if math.isfinite(radii[k]) and (chosen < 0 or rms[k] < rms[chosen]):
+                chosen = k
+        if chosen < 0:
+            return frame, 0.0, 0.0, 0.0, 0.0, False
+        frame = frames[chosen].copy()
+        best = (centres[chosen, 0], centres[chosen, 1], radii[chosen], rms[chosen])
+    return frame, best[0], best[1], best[2], best[3], True
+
+
+@njit(cache=True)
 def _accumulate(normal: np.ndarray, right: np.ndarray, row: np.ndarray, b: float) -> None:
     """Add one equation ``row . x = b`` to the normal equations ``normal x = right``."""
     for a in range(len(row)):
@@ -168,21 +245,42 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
 
 
 @njit(cache=True)
+def _smallest(values: np.ndarray, sign: float, count: int) -> np.ndarray:
+    """The ``count`` smallest of ``sign * values``, ascending: one pass with a sorted buffer
+    (a percentile near an end needs only a handful of values; a full partition of a copy
+    cost several times the pass on every axis of every box candidate)."""
+    buffer = np.empty(count)
+    size = 0
+    for i in range(len(values)):
+        x = sign * values[i]
+        if size == count and x >= buffer[count - 1]:
+            continue
+        j = size if size < count else count - 1
+        while j > 0 and buffer[j - 1] > x:
+            buffer[j] = buffer[j - 1]
+            j -= 1
+        buffer[j] = x
+        size = min(size + 1, count)
+    return buffer
+
+
+@njit(cache=True)
 def _robust_ends(values: np.ndarray) -> tuple[float, float]:
     """The 1st and 99th percentiles of ``values`` (linear interpolation, as np.percentile)
-    by one partition."""
+    from the few values at each end (`_smallest`)."""
     n = len(values)
-    lows = np.empty(2, np.int64)
-    weights = np.empty(2)
+    out = np.empty(2)
     for i, q in enumerate((0.01, 0.99)):
         index = q * (n - 1)
-        lows[i] = int(math.floor(index))
-        weights[i] = index - lows[i]
-    kth = np.array([lows[0], min(lows[0] + 1, n - 1), lows[1], min(lows[1] + 1, n - 1)])
-    part = np.partition(values, kth)
-    out = np.empty(2)
-    for i in range(2):
-        a, b, w = part[lows[i]], part[min(lows[i] + 1, n - 1)], weights[i]
+        low = int(math.floor(index))
+        high = min(low + 1, n - 1)
+        w = index - low
+        if q < 0.5:
+            few = _smallest(values, 1.0, high + 1)
+            a, b = few[low], few[high]
+        else:  # the top values, counted from the top
+            few = _smallest(values, -1.0, n - low)
+            a, b = -few[n - 1 - low], -few[n - 1 - high]
         out[i] = a + (b - a) * w if w < 0.5 else b - (b - a) * (1.0 - w)
     return out[0], out[1]
 
@@ -331,6 +429,8 @@ def warm_up() -> None:
     points = np.random.default_rng(0).normal(size=(16, 3))
     sphere_fit(points, 1)
     circle_fits(points, points[:2].copy(), points[2:4].copy())
+    circle_refine(np.ascontiguousarray(points[:, :2]), 0.0, 0.0, 1.0, 1)
+    roundest_axis(points, points[0].copy(), np.zeros((1, 2)), np.ones(1))
     near_planes(points, 0.01)
     face_counts(np.ascontiguousarray(points[:, :2]), np.arange(0.0, 1.0, 0.5), 0.01)
     median(points[:, 0].copy())

@@ -1,0 +1,73 @@
+"""The compiled fit kernels against the numpy arithmetic they replace, and against geometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from damon_ros.perception.fit_kernels import circle_refine, near_planes, roundest_axis
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 50, 99, 100, 101, 256, 257, 1000, 2001])
+def test_face_planes_are_numpys_percentiles(n):
+    rng = np.random.default_rng(n)
+    for values in (rng.normal(size=(n, 3)), np.round(rng.normal(size=(n, 3)), 1)):  # ties
+        tol = 0.05
+        near_low, near_high = near_planes(np.ascontiguousarray(values), tol)
+        low, high = np.percentile(values, [1.0, 99.0], axis=0)
+        assert np.array_equal(near_low, np.abs(values - low) <= tol)
+        assert np.array_equal(near_high, np.abs(values - high) <= tol)
+
+
+def _numpy_refine(xy, centre, radius, iterations):
+    """Gauss-Newton on |p - c| - r with numpy's solver: the kernel's reference."""
+    for _ in range(iterations):
+        d = xy - centre
+        dist = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        jac = np.column_stack([-d / dist[:, None], -np.ones(len(xy))])
+        step = np.linalg.solve(jac.T @ jac, jac.T @ (radius - dist))
+        centre, radius = centre + step[:2], radius + step[2]
+    rms = math.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - radius) ** 2))
+    return centre, radius, rms
+
+
+def test_circle_refinement_is_the_geometric_fit_of_a_noisy_arc():
+    rng = np.random.default_rng(3)
+    angles = rng.uniform(-0.8, 0.8, 300)  # a short arc: the algebraic start is biased
+    xy = 0.04 * np.column_stack([np.cos(angles), np.sin(angles)]) + [0.3, -0.1]
+    xy += rng.normal(scale=0.001, size=xy.shape)
+    start = (np.array([0.31, -0.1]), 0.03)
+    cx, cy, radius, rms = circle_refine(xy, start[0][0], start[0][1], start[1], 5)
+    centre, ref_radius, ref_rms = _numpy_refine(xy, *start, 5)
+    assert np.allclose([cx, cy, radius, rms], [*centre, ref_radius, ref_rms], atol=1e-12)
+    assert abs(radius - 0.04) < 0.003 and rms < 0.0015
+
+
+def test_circle_refinement_of_coincident_points_reports_no_circle():
+    xy = np.zeros((20, 2))
+    assert math.isnan(circle_refine(xy, 0.0, 0.0, 0.05, 3)[3])
+
+
+def test_the_roundest_axis_of_a_tilted_cylinder_side_is_its_axis():
+    rng = np.random.default_rng(5)
+    axis = np.array([0.15, -0.1, 1.0])
+    axis /= np.linalg.norm(axis)
+    u = np.cross(axis, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    angles = rng.uniform(-1.2, 1.2, 400)  # the visible side of a pole: an arc
+    heights = rng.uniform(-0.15, 0.15, 400)
+    points = (0.05 * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v)
+              + heights[:, None] * axis + rng.normal(scale=0.0005, size=(400, 3)))
+    centred = points - points.mean(axis=0)
+    grid = np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)
+    start = np.array([0.0, 0.0, 1.0])  # 0.18 rad off the truth
+    frame, _, _, radius, rms, ok = roundest_axis(centred, start, grid,
+                                                 np.array([0.08, 0.02, 0.005]))
+    assert ok
+    assert math.acos(min(1.0, abs(float(frame[:, 2] @ axis)))) < 0.01
+    assert abs(radius - 0.05) < 0.005 and rms < 0.002
+    assert np.allclose(frame.T @ frame, np.eye(3), atol=1e-12)
+    assert np.linalg.det(frame) > 0.0
