@@ -79,6 +79,7 @@ from damon_ros.planning.follower import (
 )
 from damon_ros.planning.trajectory import METHODS
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import Float64ArrayWriter, JointStateDecoder
 from damon_ros.ros.inputs import JointStateReader, joint_names, read_joint_state
 from damon_ros.ros.node_loop import start_loop, stop_loop
 from damon_ros.ros.node_main import node_main
@@ -203,7 +204,10 @@ class Controller(Node):
         self._state_every = max(1, round(p["rate_hz"] / p["state_rate_hz"]))
         self._cmd_pub = self.create_publisher(Float64MultiArray, topics.JOINT_COMMANDS, 10)
         self._state_pub = self.create_publisher(JointState, topics.CONTROLLER_STATE, 10)
-        self._joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states")
+        self._joint_states = Inbox(self, JointState, p["joint_states_topic"], "joint_states",
+                                   raw=True)
+        self._decode_joint_state = JointStateDecoder()
+        self._command = Float64ArrayWriter(len(self.names))
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, 10)
         self.create_subscription(DiagnosticArray, topics.PLANNER_STATUS, self._on_heartbeat, 10)
         self._loop = start_loop(self, NAME, p["rate_hz"], self._tick, "control loop",
@@ -299,8 +303,12 @@ class Controller(Node):
         """The newest good measurement among those arrived since the last tick, with its
         arrival time. A bad one is reported (`read_joint_state`) and not used."""
         for item in self._joint_states.take_all():
-            q = read_joint_state(self._reader, item.msg, self._problems,
-                                 self.get_logger().info)
+            try:
+                msg = self._decode_joint_state(item.msg)
+            except ValueError as exc:
+                self._problems.report(f"ignored joint state: {exc}", "joint_state.unreadable")
+                continue
+            q = read_joint_state(self._reader, msg, self._problems, self.get_logger().info)
             if q is not None:
                 with self._lock:
                     self._q, self._q_time = q, min(item.arrived, t)
@@ -320,7 +328,7 @@ class Controller(Node):
         self._ticks += 1
         for level, line in events:  # aborts on a tolerance, goals reached: said once each
             getattr(self._event_logger(level), level)(line)
-        self._cmd_pub.publish(Float64MultiArray(data=u.tolist()))
+        self._cmd_pub.publish(self._command.write(u))
         if state is not None:
             state.header.stamp = self.get_clock().now().to_msg()
             self._state_pub.publish(state)

@@ -48,6 +48,7 @@ from std_msgs.msg import Float64MultiArray
 from damon_ros.core.limits import PROFILES, READY, JointLimits, joint_limits
 from damon_ros.core.scenario import Scenario, load_scenario
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import Float64ArrayDecoder, JointStateWriter
 from damon_ros.ros.inputs import joint_names
 from damon_ros.ros.node_loop import start_loop, stop_loop
 from damon_ros.ros.node_main import node_main
@@ -171,7 +172,10 @@ class MockPanda(Node):
         self._ticks = 0
         self._contact: ContactMonitor | None = None
         self._pub = self.create_publisher(JointState, topics.JOINT_STATES, 10)
-        self._commands = Inbox(self, Float64MultiArray, topics.JOINT_COMMANDS, "commands")
+        self._joint_state = JointStateWriter(self.names)
+        self._commands = Inbox(self, Float64MultiArray, topics.JOINT_COMMANDS, "commands",
+                               raw=True)
+        self._decode_command = Float64ArrayDecoder()
         self._setup_contact_check(scenario)
         accept_at_run_time(self, {"scenario_start_time_s": self._set_scenario_start})
         self._limits_pub = (self.create_publisher(DiagnosticArray, topics.SIM_LIMITS, 10)
@@ -206,11 +210,16 @@ class MockPanda(Node):
 
     # -- loop thread
 
-    def _on_command(self, msg: Float64MultiArray, t: float, sent: float | None) -> None:
-        """One command, arrived at monotonic time ``t``; ``sent`` (the publisher's send
-        time) is for the limit monitor."""
+    def _on_command(self, raw: bytes, t: float, sent: float | None) -> None:
+        """One serialised command, arrived at monotonic time ``t``; ``sent`` (the
+        publisher's send time) is for the limit monitor."""
+        try:
+            data = self._decode_command(raw)
+        except ValueError as exc:
+            self._problems.report(f"rejected joint command: {exc}")
+            return
         with self._lock:
-            reason = self._sim.command(msg.data, t, sent)
+            reason = self._sim.command(data, t, sent)
             if reason is None:
                 self._last_command = t
             reports = self._monitor.take_reports() if self._monitor is not None else ()
@@ -237,9 +246,7 @@ class MockPanda(Node):
         for report in reports:
             self.get_logger().error(report)
         self._watch_commands(t, last)
-        msg = JointState(name=self.names, position=q.tolist(), velocity=qd.tolist())
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self._pub.publish(msg)
+        self._pub.publish(self._joint_state.write(self.get_clock().now().nanoseconds, q, qd))
         if limits is not None:
             self._limits_pub.publish(limits)
         self._ticks += 1

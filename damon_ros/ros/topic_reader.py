@@ -33,15 +33,17 @@ class Inbox:
     the subscription in the 1 kHz loop's own tick the two used 0.53 and 0.47, and each
     message arrives in the tick that uses it instead of whenever the executor gets round
     to it. The subscription lives on a helper node ``<node>_<suffix>`` in the same context
-    (the process's remaps apply to it) that no executor spins.
+    (the process's remaps apply to it) that no executor spins. With ``raw`` the messages
+    are taken as their serialised bytes, for the owner to read (`damon_ros.ros.cdr`).
     """
 
     def __init__(self, node: Node, msg_type, topic: str, suffix: str,
-                 qos: QoSProfile | int = 50):
+                 qos: QoSProfile | int = 50, raw: bool = False):
         self._node = rclpy.create_node(f"{node.get_name()}_{suffix}", context=node.context,
                                        namespace=node.get_namespace(), enable_rosout=False,
                                        start_parameter_services=False)
-        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos)
+        self._sub = self._node.create_subscription(msg_type, topic, lambda _msg: None, qos,
+                                                   raw=raw)
         self._wake = GuardCondition(None, None, context=node.context)
 
     def wait(self, timeout_s: float) -> None:
@@ -75,7 +77,7 @@ class Inbox:
         handle, out = self._sub.handle, []
         while True:
             with handle:
-                taken = handle.take_message(self._sub.msg_type, False)
+                taken = handle.take_message(self._sub.msg_type, self._sub.raw)
             if taken is None:
                 break
             out.append(taken)

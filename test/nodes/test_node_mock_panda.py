@@ -20,6 +20,7 @@ import pytest
 import rosutil
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -205,10 +206,12 @@ def test_stops_when_commands_go_stale(graph: Graph, tmp_path: Path):
 
 
 def _bad_burst(graph: Graph) -> None:
+    cut = serialize_message(Float64MultiArray(data=[0.5] * 7))[:20]  # bytes of half a message
     for _ in range(5):
         graph.commands.publish(Float64MultiArray(data=[1.0, 2.0, 3.0]))
         graph.commands.publish(Float64MultiArray(data=[float("nan")] * 7))
         graph.commands.publish(Float64MultiArray(data=[float("inf")] + [0.0] * 6))
+        graph.commands.publish(cut)
 
 
 def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
@@ -230,8 +233,9 @@ def test_rejects_malformed_commands_and_keeps_running(graph: Graph):
     assert graph.settle(), "a stream of bad commands must end in the timeout stop"
     lines = rosutil.log_lines(graph.proc, "rejected joint command")
     # one line per kind of problem for the whole burst (the repeats are counted)
-    assert len(lines) == before + 2, lines
-    assert "7 velocities" in lines[-2] and "NaN or inf" in lines[-1], lines
+    assert len(lines) == before + 3, lines
+    assert "7 velocities" in lines[-3] and "NaN or inf" in lines[-2], lines
+    assert "overruns the 20 bytes" in lines[-1], lines
     assert graph.proc.poll() is None
     count = len(graph.states)
     graph.ros.spin_for(0.2)
