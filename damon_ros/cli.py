@@ -39,6 +39,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                   "generate fresh scenario files like the public families (held-out sets)"),
     "bench-tracker": ("damon_ros.tools.bench_tracker", "main",
                       "the tracker against ground truth: containment, volume excess, errors"),
+    "bench-loops": ("damon_ros.tools.bench_loops", "main",
+                    "CPU of the two 1 kHz nodes alone, per process and thread"),
     "bench-search": ("damon_ros.tools.bench_search", "main",
                      "graph search times: compiled A*, one lazy iteration, whole routes (ms)"),
     "bench-robot": (

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import header_stamp
 from damon_ros.ros.stamps import to_stamp
 from damon_ros.tools.soak_report import LIMIT_KEYS, VIOLATIONS, print_progress
 
@@ -45,12 +45,6 @@ class SoakGoal:
     position_tolerance: float
     orientation_tolerance: float
     joints: list[float]  # the IK solution checked here (the planner solves again)
-
-
-def cdr_stamp(data: bytes) -> float:
-    """header.stamp of a serialised message that starts with a std_msgs/Header (CDR)."""
-    sec, nanosec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
-    return sec + 1e-9 * nanosec
 
 
 class Tap:
@@ -99,7 +93,7 @@ class JointStream:
     raw: bytes | None = None
 
     def __call__(self, data: bytes, seq: int) -> None:
-        stamp = cdr_stamp(data)
+        stamp = header_stamp(data)
         if self.last_seq is not None and seq == self.last_seq + 1:
             gap = stamp - self.last_stamp
             self.max_gap = max(self.max_gap, gap)

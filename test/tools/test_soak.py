@@ -16,7 +16,6 @@ import numpy as np
 from rosutil import next_domain_id
 
 from damon_ros.tools import soak
-from damon_ros.tools.soak_monitor import cdr_stamp
 from damon_ros.tools.soak_report import LIMIT_KEYS, NODES, verdict
 
 
@@ -102,15 +101,6 @@ def test_soak_scenario_is_valid_and_sweeps_last_the_whole_run(tmp_path):
         ends = {tuple(np.round(o.position_at(t), 3)) for t in o.waypoints[1:, 0]}
         assert len(ends) == 2  # back and forth between its two end points
     assert math.isclose(scenario.time_limit, 300.0)
-
-
-def test_cdr_stamp_reads_the_header_of_a_serialised_message():
-    from rclpy.serialization import serialize_message
-    from sensor_msgs.msg import JointState
-
-    msg = JointState(name=["a"], position=[1.0])
-    msg.header.stamp.sec, msg.header.stamp.nanosec = 1234, 500_000_000
-    assert cdr_stamp(serialize_message(msg)) == 1234.5
 
 
 def test_cpu_seconds_counts_this_process_busy_time_and_nan_once_gone():
