@@ -47,6 +47,8 @@ class Graph:
     commands: object  # the publisher of /damon/joint_commands
     commands_seen: rosutil.Recorder  # every command on /damon/joint_commands, any sender
     domain: int
+    first_sent: float = 0.0  # of the last `stream`
+    max_gap: float = 0.0
 
     def q(self) -> np.ndarray:
         return np.array(self.states.last.position)
@@ -55,13 +57,17 @@ class Graph:
         return np.array(self.states.last.velocity)
 
     def stream(self, velocity, seconds: float, rate_hz: float = 200.0) -> float:
-        """Publish one velocity command at ``rate_hz`` for ``seconds``; time of the last."""
+        """Publish one velocity command at ``rate_hz`` for ``seconds``; time of the last.
+        The times of the first and the longest gap between two are kept (`first_sent`,
+        `max_gap`): a client stalled by a busy machine leaves gaps the arm stops in."""
         msg = Float64MultiArray(data=[float(v) for v in velocity])
         end = time.monotonic() + seconds
-        last = time.monotonic()
+        last = self.first_sent = time.monotonic()
+        self.max_gap = 0.0
         while time.monotonic() < end:
             self.commands.publish(msg)
-            last = time.monotonic()
+            now = time.monotonic()
+            self.max_gap, last = max(self.max_gap, now - last), now
             self.ros.spin_for(1.0 / rate_hz)
         return last
 
@@ -119,14 +125,21 @@ def test_publishes_joint_states_at_rate_with_names(graph: Graph):
 
 
 def test_integrates_a_velocity_command(graph: Graph):
-    assert graph.settle()
-    q0 = graph.q()
     v = np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0, -0.1])
-    graph.stream(v, 0.5)
-    speeds = np.array([m.velocity for m in graph.states.messages[-50:]])
-    graph.stream(np.zeros(7), 0.1)
-    assert graph.settle()
-    moved = graph.q() - q0
+    for _ in range(3):
+        assert graph.settle()
+        q0 = graph.q()
+        last = graph.stream(v, 0.5)
+        stalled = graph.max_gap
+        speeds = np.array([m.velocity for m in graph.states.messages[-50:]])
+        graph.stream(np.zeros(7), 0.1)
+        assert graph.settle()
+        moved = graph.q() - q0
+        # commands half the timeout apart: then the arm moved exactly while they came (a
+        # client stalled longer on a busy machine let it stop or coast on: again; seen once
+        # in a full suite beside two busy loops, 0.377 s of motion for 0.5 s of commands)
+        if max(stalled, graph.first_sent - last) < 0.5 * TIMEOUT_S:
+            break
     # First-order lag: the rise loses v*tau, the decay gives it back, so q moves v*T.
     np.testing.assert_allclose(moved, v * 0.5, atol=0.015)
     assert np.all(np.abs(moved[1:6]) < 1e-12)
