@@ -188,15 +188,15 @@ class JointStateDecoder:
     def __init__(self) -> None:
         self._layout: _Layout | None = None
         self._last: JointStateView | None = None
+        self._stamp: struct.Struct | None = None  # sec and nanosec in the layout's byte order
 
     def __call__(self, raw: bytes) -> JointStateView | JointState:
         last = self._last
         arrays = self._layout.read(raw) if self._layout is not None else None
         if arrays is None:
             return self._walk(raw)
-        sec, nanosec = struct.unpack_from(self._layout.endian + "iI", raw, HEADER)
-        return JointStateView(Header(Stamp(sec, nanosec), last.header.frame_id), last.name,
-                              *arrays)
+        stamp = Stamp(*self._stamp.unpack_from(raw, HEADER))
+        return JointStateView(Header(stamp, last.header.frame_id), last.name, *arrays)
 
     def _walk(self, raw: bytes) -> JointStateView | JointState:
         try:
@@ -205,6 +205,7 @@ class JointStateDecoder:
             return _standard(raw, JointState)
         view = _joint_state(cursor)
         self._layout, self._last = _Layout(cursor, _STAMP), view
+        self._stamp = struct.Struct(cursor.endian + "iI")
         return view
 
 

@@ -14,6 +14,7 @@ shutdown lines. Compare versions by alternating runs in one sitting.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -35,18 +36,20 @@ while True:
 
 
 def thread_cpu(pid: int) -> dict[str, float]:
-    """CPU seconds (user + system) per thread name of a process; threads of one name summed."""
-    ticks = os.sysconf("SC_CLK_TCK")
+    """CPU seconds (user + system) per thread name of a process (`cpu_seconds` of each of
+    its threads); threads of one name summed, Fast DDS's ``dds.*`` threads as one."""
+    from damon_ros.tools.soak_monitor import cpu_seconds
+
     out: dict[str, float] = {}
     for tid in os.listdir(f"/proc/{pid}/task"):
         try:
-            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+            name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
         except OSError:
             continue  # the thread ended meanwhile
-        name = stat.split("(", 1)[1].rsplit(")", 1)[0]
-        fields = stat.rsplit(")", 1)[1].split()
-        name = name.split(".")[0] + ".*" if name.startswith("dds.") else name
-        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
+        seconds = cpu_seconds(pid, int(tid))
+        if not math.isnan(seconds):
+            name = "dds.*" if name.startswith("dds.") else name
+            out[name] = out.get(name, 0.0) + seconds
     return out
 
 

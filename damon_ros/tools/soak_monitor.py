@@ -192,15 +192,18 @@ def rss_mb(pid: int) -> float:
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
-def cpu_seconds(pid: int) -> float:
-    """CPU time (user + system, s) a process has used so far, NaN once it is gone.
+def cpu_seconds(pid: int, tid: int | None = None) -> float:
+    """CPU time (user + system, s) a process (or its thread ``tid``) has used so far, NaN
+    once it is gone.
 
-    From ``/proc/<pid>/stat`` (fields 14 and 15, clock ticks): a difference over a window
-    divided by its length is the process's CPU share in cores (1.0 = one core busy), which
-    is what counts on a 2-core machine, whatever the wall-clock load of the moment.
+    From ``/proc/<pid>/stat`` (``/proc/<pid>/task/<tid>/stat``; fields 14 and 15, clock
+    ticks): a difference over a window divided by its length is the process's CPU share in
+    cores (1.0 = one core busy), which is what counts on a 2-core machine, whatever the
+    wall-clock load of the moment.
     """
+    path = f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat"
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        fields = Path(path).read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
     except (OSError, ValueError, IndexError):
         return math.nan
