@@ -30,6 +30,7 @@ from damon_ros.planning.space_time import (
     Contact,
     Prediction,
     first_contact,
+    least_distance,
     predicted_region,
     refused_at,
     stops_screen,
@@ -729,24 +730,23 @@ class GraphPlanner:
         scene = Scene.of(obstacles)
         if not scene.moving or self.path_threatened(q_now, remaining, scene.statics())[0]:
             return False
-        on = self._nominal_clearance(np.asarray(times, float), np.asarray(positions, float),
-                                     scene)
-        if on <= 0.0:
-            return False
-        return on > self._nominal_clearance(*_timed(self.stop_trajectory(q_now, qd_now)),
-                                            scene)
+        # the brake first: following on must beat it and 0, and the (longer) follow-on
+        # check ends at its first instant that does not
+        floor = max(0.0, self._nominal_clearance(
+            *_timed(self.stop_trajectory(q_now, qd_now)), scene))
+        return self._nominal_clearance(np.asarray(times, float), np.asarray(positions, float),
+                                       scene, floor) > floor
 
     def _nominal_clearance(self, times: np.ndarray, positions: np.ndarray, scene: Scene,
-                           step_s: float = 0.02) -> float:
+                           floor: float = -math.inf, step_s: float = 0.02) -> float:
         """Least distance (fast model) of the timed states, then the last one held
-        REST_HORIZON_S, from the movers moving on at their reported velocities."""
-        tau0 = max(scene.age_s, self.config.prediction.min_age_s)
+        REST_HORIZON_S, from the movers moving on at their reported velocities (at or
+        below ``floor``: some distance at or below it, `space_time.least_distance`)."""
         instants = np.arange(0.0, times[-1] + REST_HORIZON_S + step_s, step_s)
         states = np.column_stack([np.interp(instants, times, positions[:, j])
                                   for j in range(positions.shape[1])])
-        return min(float(self.robot.distances(q[None], [
-            s.moved_to(s.position + v * (tau0 + t)) for s, v in scene.moving])[0])
-            for t, q in zip(instants, states, strict=True))
+        return least_distance(self.robot, instants, states, scene.moving,
+                              self.config.prediction, scene.age_s, floor)
 
     def _delayed(self, trajectory, scene: Scene, margin: float, refused_s: float):
         """``trajectory`` started after a wait at its first state (the shortest of

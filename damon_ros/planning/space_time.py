@@ -143,6 +143,24 @@ def _thinned(times, positions, resolution, rate, step):
 
 
 @njit(cache=True)
+def _translate(tau, velocity, kind, pos, params, hull, moved_pos, moved_hull):
+    """Each packed mover translated by its velocity times ``tau`` into ``moved_pos`` and
+    ``moved_hull``: its position, and a hull's face rows (corners and plane offset)."""
+    for k in range(kind.shape[0]):
+        dx, dy, dz = velocity[k, 0] * tau, velocity[k, 1] * tau, velocity[k, 2] * tau
+        moved_pos[k, 0], moved_pos[k, 1], moved_pos[k, 2] = (pos[k, 0] + dx, pos[k, 1] + dy,
+                                                            pos[k, 2] + dz)
+        if kind[k] == sphere_kernels.HULL:
+            for r in range(int(params[k, 1]), int(params[k, 2])):
+                for c in range(3):
+                    moved_hull[r, 3 * c] = hull[r, 3 * c] + dx
+                    moved_hull[r, 3 * c + 1] = hull[r, 3 * c + 1] + dy
+                    moved_hull[r, 3 * c + 2] = hull[r, 3 * c + 2] + dz
+                moved_hull[r, 12] = hull[r, 12] - (hull[r, 9] * dx + hull[r, 10] * dy
+                                                   + hull[r, 11] * dz)
+
+
+@njit(cache=True)
 def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, robot_args,
                    kind, pos, rot, params, hull):
     """Index of the first instant at which some mover part comes within its required
@@ -159,18 +177,8 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
     need = np.empty(kind.shape[0])
     for n in range(times.shape[0]):
         tau = tau0 + times[n]
+        _translate(tau, velocity, kind, pos, params, hull, moved_pos, moved_hull)
         for k in range(kind.shape[0]):
-            dx, dy, dz = velocity[k, 0] * tau, velocity[k, 1] * tau, velocity[k, 2] * tau
-            moved_pos[k, 0], moved_pos[k, 1], moved_pos[k, 2] = (pos[k, 0] + dx, pos[k, 1] + dy,
-                                                                pos[k, 2] + dz)
-            if kind[k] == sphere_kernels.HULL:
-                for r in range(int(params[k, 1]), int(params[k, 2])):
-                    for c in range(3):
-                        moved_hull[r, 3 * c] = hull[r, 3 * c] + dx
-                        moved_hull[r, 3 * c + 1] = hull[r, 3 * c + 1] + dy
-                        moved_hull[r, 3 * c + 2] = hull[r, 3 * c + 2] + dz
-                    moved_hull[r, 12] = hull[r, 12] - (hull[r, 9] * dx + hull[r, 10] * dy
-                                                       + hull[r, 11] * dz)
             need[k] = required0 + grow_lin[k] * tau + grow_quad * tau * tau
         if sphere_kernels._distance_below(Q[n], 1e-12, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr,
                                           jb, kind, moved_pos, rot, params, moved_hull, fr, fp,
@@ -286,6 +294,52 @@ def _first_instant(robot, times, positions, moving, margin, resolution, predicti
     return None if n < 0 else (t[n], Q[n], tau0)
 
 
+def least_distance(robot, times: np.ndarray, positions: np.ndarray,
+                   moving: Sequence[tuple[Shape, np.ndarray]], prediction: Prediction,
+                   age_s: float = 0.0, floor: float = -math.inf) -> float:
+    """Least signed distance of the states ``positions`` at ``times`` from the movers where
+    they nominally are then (translated by ``v * tau``, ``tau`` as in `first_contact`; not
+    grown): how close following a trajectory comes to them. Once an instant is at or
+    below ``floor`` that instant's distance is returned (the question is then answered).
+    On the fast model one compiled loop (a Python query per instant and mover cost a
+    re-route ~10-25 ms before its search began: `GraphPlanner.follow_on_safer`)."""
+    if not moving:
+        return math.inf
+    tau0 = max(age_s, prediction.min_age_s)
+    if getattr(robot, "collision", "") == "fast":
+        m = _Movers.of(moving, prediction)
+        return float(_least_distance(np.asarray(times, float),
+                                     np.ascontiguousarray(positions, float), tau0, floor,
+                                     m.velocity, tuple(robot.spheres.kernel_args), *m.packed))
+    best = math.inf
+    for t, q in zip(times, positions, strict=True):
+        moved = [s.moved_to(s.position + np.asarray(v, float) * (tau0 + t)) for s, v in moving]
+        best = min(best, float(robot.distances(np.asarray(q, float)[None], moved)[0]))
+        if best <= floor:
+            break
+    return best
+
+
+@njit(cache=True)
+def _least_distance(times, Q, tau0, floor, velocity, robot_args, kind, pos, rot, params,
+                    hull):
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
+    fr = np.empty((jr.shape[0] + 1, 3, 3))
+    fp = np.empty((jr.shape[0] + 1, 3))
+    where = np.empty(2, np.int64)
+    moved_pos = pos.copy()
+    moved_hull = hull.copy()
+    best = np.inf
+    for n in range(times.shape[0]):
+        _translate(tau0 + times[n], velocity, kind, pos, params, hull, moved_pos, moved_hull)
+        best = sphere_kernels._distance_below(Q[n], best, jr, jp, sj, sc, sr, gj, gs, ge, gc,
+                                              gr, jb, kind, moved_pos, rot, params,
+                                              moved_hull, fr, fp, where, floor)
+        if best <= floor:
+            return best
+    return best
+
+
 def stops_screen(robot, trajectory, stops: np.ndarray, first: int,
                  moving: Sequence[tuple[Shape, np.ndarray]], margin: float, resolution: float,
                  prediction: Prediction, tau0: float, limits, coast_s: float,
@@ -386,6 +440,7 @@ def warm_up(robot) -> None:
         first_contact(robot, np.array([0.0, 0.5]), q, probe, 0.01, 0.02, Prediction())
         refused_at(robot, np.array([0.0, 0.5]), q, probe, 0.01, 0.02, Prediction(),
                    hint_s=0.2)
+        least_distance(robot, np.array([0.0, 0.5]), q, probe, Prediction(), floor=0.0)
         if hasattr(robot, "limits"):  # a moving state's stop, against movers and a static
             from damon_ros.planning.trajectory import Trajectory
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.robot import Robot
@@ -16,6 +17,7 @@ from damon_ros.planning.space_time import (
     Prediction,
     check_instants,
     first_contact,
+    least_distance,
     refused_at,
 )
 from damon_ros.planning.trajectory import time_parameterize
@@ -241,3 +243,40 @@ def test_a_search_around_a_region_decides_every_edge_as_a_fresh_one(planner, fas
         assert answers != decided  # the region mattered
         assert np.array_equal(reused.search.blocked, fresh.search.blocked)
     assert any(not d and a for d, a in zip(decided, answers, strict=True))  # a lower margin
+
+
+def test_least_distance_is_the_least_distance_to_the_movers_where_they_are(fast):
+    """The compiled loop against one query per instant, movers of every packed kind (a
+    ball, a yawed box, a point set's hull) translated by v * (age + t); with a floor it
+    stops at an instant at or below it."""
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), joint_limits("panda"), 0.9, 0.8, 0.8, dt=0.01)
+    ball, v = _diver(fast, tr, 0.6 * tr.duration)
+    box = Shape("box", (0.1, 0.2, 0.05), np.array([0.5, -0.3, 0.4]),
+                np.array([0.0, 0.0, np.sin(0.3), np.cos(0.3)]))
+    points = Shape("points", (), np.array([0.3, 0.4, 0.5]),
+                   points=np.random.default_rng(3).uniform(-0.05, 0.05, (12, 3)))
+    moving = ((ball, v), (box, np.array([0.0, 0.4, 0.0])), (points, np.array([0.2, -0.3, 0.1])))
+    p = Prediction()
+
+    def reference(robot, times, states):
+        tau0 = max(AGE, p.min_age_s)
+        return min(float(robot.distances(q[None], [s.moved_to(s.position + w * (tau0 + t))
+                                                   for s, w in moving])[0])
+                   for t, q in zip(times, states, strict=True))
+
+    least = least_distance(fast, tr.times, tr.positions, moving, p, AGE)
+    assert least < 0.0  # the diver meets the arm
+    assert least == pytest.approx(reference(fast, tr.times, tr.positions), abs=1e-9)
+    early = tr.times <= 0.2 * tr.duration  # before the diver comes near
+    clear = least_distance(fast, tr.times[early], tr.positions[early], moving, p, AGE)
+    assert clear > 0.0
+    assert clear == pytest.approx(reference(fast, tr.times[early], tr.positions[early]),
+                                  abs=1e-9)
+    floor = 0.5 * clear + 0.5 * least
+    assert least_distance(fast, tr.times, tr.positions, moving, p, AGE, floor) <= floor
+    assert least_distance(fast, tr.times, tr.positions, (), p, AGE) == np.inf
+    mesh = Robot("mesh")  # the exact meshes: one query per instant and mover
+    few = slice(None, None, 10)
+    assert least_distance(mesh, tr.times[few], tr.positions[few], moving, p, AGE) == (
+        pytest.approx(reference(mesh, tr.times[few], tr.positions[few]), abs=1e-9))
