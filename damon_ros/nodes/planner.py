@@ -31,12 +31,13 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from damon_ros.core.limits import PROFILES
 from damon_ros.planning.trajectory import held_until
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import JointTrajectoryWriter
 from damon_ros.ros.inputs import JointStateReader, goal_problem, read_joint_state
 from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
@@ -46,7 +47,6 @@ from damon_ros.ros.stamps import (
     clock_seconds,
     is_zero,
     stamp_seconds,
-    to_duration,
     to_stamp,
 )
 from damon_ros.ros.topic_reader import Inbox, TopicReader
@@ -133,11 +133,12 @@ residues of ~1e-15 there after time parameterisation; they go out as exact zeros
 any controller's check of the end (JTC's is float epsilon) sees a trajectory at rest."""
 
 
-def _exactly_at_rest(point: JointTrajectoryPoint) -> None:
-    for name in ("velocities", "accelerations"):
-        values = list(getattr(point, name))
-        if values and max(abs(v) for v in values) <= REST_RESIDUE:
-            setattr(point, name, [0.0] * len(values))
+def _exactly_at_rest(rates: np.ndarray) -> np.ndarray:
+    """The (N, 7) velocities or accelerations with the last row's residues made zeros."""
+    if rates.size and float(np.max(np.abs(rates[-1]))) <= REST_RESIDUE:
+        rates = rates.copy()
+        rates[-1] = 0.0
+    return rates
 
 
 class PlannerNode(Node):
@@ -215,6 +216,7 @@ class PlannerNode(Node):
         self._to_show = None  # a published route not yet visualised
 
         self.pub_traj = self.create_publisher(JointTrajectory, p["trajectory_topic"], 10)
+        self._trajectory_writer = JointTrajectoryWriter(self.limits.names, self.base_frame)
         self.pub_path = self.create_publisher(Path, topics.PLANNED_PATH, 10)
         self.pub_graph = self.create_publisher(MarkerArray, topics.GRAPH_MARKERS, 1)
         self.pub_status = self.create_publisher(DiagnosticArray, topics.PLANNER_STATUS, 10)
@@ -423,28 +425,17 @@ class PlannerNode(Node):
         self.last_event = f"{event.kind}: {event.reason}" if event.reason else event.kind
 
     # ---- outputs ----------------------------------------------------------------------
-    def _empty_trajectory(self) -> JointTrajectory:
-        msg = JointTrajectory()
-        msg.header.frame_id = self.base_frame
-        msg.joint_names = list(self.limits.names)
-        return msg
+    def _trajectory_bytes(self, traj, first: int = 0, stamp: float | None = None) -> bytes:
+        """``traj``'s samples from index ``first`` on, serialised (`cdr.JointTrajectoryWriter`);
+        header.stamp zero (start on arrival) unless ``stamp`` (s) is given (`_publish_stop`;
+        JTC refuses a stamped trajectory whose end has passed)."""
+        at = to_stamp(0.0 if stamp is None else stamp)
+        return self._trajectory_writer.write(
+            (at.sec, at.nanosec), traj.times[first:],
+            traj.positions[first:], _exactly_at_rest(traj.velocities[first:]),
+            _exactly_at_rest(traj.accelerations[first:]))
 
-    def _trajectory_msg(self, traj, first: int = 0) -> JointTrajectory:
-        """``traj``'s samples from index ``first`` on; header.stamp zero (start on arrival)
-        unless the caller stamps it (`_publish_stop`; JTC refuses a stamped trajectory
-        whose end has passed)."""
-        msg = self._empty_trajectory()
-        for t, q, qd, qdd in zip(traj.times[first:], traj.positions[first:],
-                                 traj.velocities[first:], traj.accelerations[first:],
-                                 strict=True):
-            point = JointTrajectoryPoint(positions=q.tolist(), velocities=qd.tolist(),
-                                         accelerations=qdd.tolist())
-            point.time_from_start = to_duration(t, "time_from_start")
-            msg.points.append(point)
-        _exactly_at_rest(msg.points[-1])
-        return msg
-
-    def _publish_stop(self) -> JointTrajectory | None:
+    def _publish_stop(self) -> bytes | None:
         """Stop the arm with a trajectory every controller executes (never an empty one:
         Jazzy JTC rejects it and goes on with the motion just judged unsafe): from the last
         measured position and velocity, `GraphPlanner.stop_trajectory` — a jerk-limited
@@ -470,13 +461,13 @@ class PlannerNode(Node):
             return None
         stop = self.runtime.planner.stop_trajectory(q, qd)
         if stop.times.size <= 2:  # at rest: a hold
-            msg = self._trajectory_msg(stop, first=1)
+            data = self._trajectory_bytes(stop, first=1)
         else:
             age = max(0.0, clock_seconds(self) - measured_at)
-            msg = self._trajectory_msg(held_until(stop, age + STOP_HOLD_S), first=1)
-            msg.header.stamp = to_stamp(measured_at)
-        self.pub_traj.publish(msg)
-        return msg
+            data = self._trajectory_bytes(held_until(stop, age + STOP_HOLD_S), first=1,
+                                          stamp=measured_at)
+        self.pub_traj.publish(data)
+        return data
 
     def _publish_trajectory(self, result) -> None:
         """A route from an arm at rest starts on arrival (zero stamp). One from a moving
@@ -487,11 +478,10 @@ class PlannerNode(Node):
         ask the arm to be back there on arrival."""
         traj = result.trajectory.resample(0.02)
         if float(np.max(np.abs(traj.velocities[0]))) < MOVING_START_RAD_S:
-            msg = self._trajectory_msg(traj)
+            self.pub_traj.publish(self._trajectory_bytes(traj))
         else:
-            msg = self._trajectory_msg(traj, first=1)
-            msg.header.stamp = to_stamp(self._decided_from)
-        self.pub_traj.publish(msg)
+            self.pub_traj.publish(self._trajectory_bytes(traj, first=1,
+                                                         stamp=self._decided_from))
         self._to_show = result  # its path and graph markers: `_publish_visualisation`
 
     def _publish_visualisation(self) -> None:

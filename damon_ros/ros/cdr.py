@@ -1,5 +1,6 @@
 """The two 1 kHz messages as CDR bytes: ``sensor_msgs/JointState`` and
-``std_msgs/Float64MultiArray`` written and read without rclpy's message conversion.
+``std_msgs/Float64MultiArray`` written and read without rclpy's message conversion; and
+the planner's ``trajectory_msgs/JointTrajectory``, written from its arrays.
 
 Why: rclpy turns a Python message into a C struct and then into CDR on every publish, and
 back on every take, one Python attribute at a time. At 1 kHz that was a large part of the
@@ -29,6 +30,7 @@ import numpy as np
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory
 
 HEADER = 4  # encapsulation bytes before the first field
 _ENDIAN = {b"\x00\x01": "<", b"\x00\x00": ">"}  # CDR_LE, CDR_BE
@@ -283,3 +285,58 @@ class Float64ArrayWriter:
     def write(self, data) -> bytes:
         self._data[:] = _array(data, self.n, "data")
         return bytes(self._buf)
+
+
+class JointTrajectoryWriter:
+    """Serialised JointTrajectories of fixed joint ``names`` and ``frame_id``, written from
+    the sample arrays (no efforts), for ``Publisher.publish``.
+
+    Why: a re-route is published the moment it is decided, and rclpy built one
+    JointTrajectoryPoint object per sample and then converted each field by field: ~3.4 ms
+    for the 56 samples of a 1.1 s move, several times the search behind it on a quiet
+    machine. Here each sample is a few small packs into one buffer (~0.1 ms for 56)."""
+
+    def __init__(self, names: Sequence[str], frame_id: str = ""):
+        self.n = len(names)
+        empty = JointTrajectory(joint_names=list(names))
+        empty.header.frame_id = frame_id
+        head = serialize_message(empty)
+        cursor = _Cursor(head)  # the header and the names: the bytes before the points
+        cursor.int32()
+        cursor.uint32()
+        cursor.string()
+        for _ in range(cursor.uint32()):
+            cursor.string()
+        cursor.align(4)
+        self._head = bytes(head[:cursor.pos])
+        e = self._endian = cursor.endian
+        self._stamp = struct.Struct(e + "iI")
+        self._count = struct.Struct(e + "I")
+        self._point_end = struct.Struct(e + "IiI")  # no efforts, then time_from_start
+
+    def write(self, stamp: tuple[int, int], times, positions, velocities,
+              accelerations) -> bytes:
+        """The message stamped ``stamp`` (sec, nanosec; (0, 0): start on arrival), one
+        point per row of the (N, n) arrays, ``times`` (N,) from the start in seconds,
+        non-negative and finite."""
+        times = np.asarray(times, dtype=float)
+        arrays = [np.ascontiguousarray(a, dtype=self._endian + "f8")
+                  for a in (positions, velocities, accelerations)]
+        for a, what in zip(arrays, ("positions", "velocities", "accelerations"), strict=True):
+            if a.shape != (len(times), self.n):
+                raise ValueError(f"{what} must be {len(times)} x {self.n}, got {a.shape}")
+        if not (np.all(np.isfinite(times)) and np.all(times >= 0.0)):
+            raise ValueError("time_from_start must be finite times >= 0")
+        ns = np.rint(times * 1e9).astype(np.int64)
+        buf = bytearray(self._head)
+        self._stamp.pack_into(buf, HEADER, *stamp)
+        buf += self._count.pack(len(times))
+        count = self._count.pack(self.n)
+        for i in range(len(times)):
+            for a in arrays:  # a sequence<float64>: its count, then 8-aligned values
+                buf += count
+                if self.n:  # (Fast CDR aligns no empty sequence)
+                    buf += bytes(-(len(buf) - HEADER) % 8)
+                buf += a[i].tobytes()
+            buf += self._point_end.pack(0, *divmod(int(ns[i]), 1_000_000_000))
+        return bytes(buf)

@@ -1,7 +1,7 @@
-"""The 1 kHz messages as CDR bytes (`damon_ros.ros.cdr`) mean exactly what rclpy's own
-serialisation makes of them: written bytes read back by rclpy, rclpy's bytes read here,
-for any names and values; a stream's layout cache never reads a changed message wrongly;
-bytes nobody can read raise ValueError."""
+"""The 1 kHz messages and the planner's trajectories as CDR bytes (`damon_ros.ros.cdr`) mean
+exactly what rclpy's own serialisation makes of them: written bytes read back by rclpy,
+rclpy's bytes read here, for any names and values; a stream's layout cache never reads a
+changed message wrongly; bytes nobody can read raise ValueError."""
 
 from __future__ import annotations
 
@@ -15,12 +15,14 @@ from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from damon_ros.ros.cdr import (
     Float64ArrayDecoder,
     Float64ArrayWriter,
     JointStateDecoder,
     JointStateWriter,
+    JointTrajectoryWriter,
     header_stamp,
 )
 from damon_ros.ros.inputs import InputError, JointStateReader
@@ -117,7 +119,37 @@ def test_big_endian_bytes():
     assert Float64ArrayDecoder()(b"\x00\x00\x00\x00" + body).tolist() == [1.5, -2.25]
 
 
+@settings(max_examples=60, deadline=None)
+@given(texts, st.lists(texts, max_size=8), st.integers(0, 12), st.data(),
+       st.integers(0, 2**31 - 1), st.integers(0, 10**9 - 1))
+def test_written_trajectories_read_back_by_rclpy(frame, names, points, data, sec, nanosec):
+    """Any joint count (odd ones shift every other point's alignment), point count, frame
+    and stamp: rclpy reads the very message it would have built point by point."""
+    n = len(names)
+    times = np.array(data.draw(st.lists(st.floats(0.0, 1e4), min_size=points,
+                                        max_size=points)))
+    rows = [np.array(data.draw(st.lists(_vector(n), min_size=points, max_size=points)),
+                     float).reshape(points, n) for _ in range(3)]
+    raw = JointTrajectoryWriter(names, frame).write((sec, nanosec), times, *rows)
+    expected = JointTrajectory(joint_names=names)
+    expected.header.frame_id = frame
+    expected.header.stamp.sec, expected.header.stamp.nanosec = sec, nanosec
+    for i, t in enumerate(times):
+        point = JointTrajectoryPoint(positions=rows[0][i].tolist(),
+                                     velocities=rows[1][i].tolist(),
+                                     accelerations=rows[2][i].tolist())
+        ns = int(round(t * 1e9))
+        point.time_from_start.sec, point.time_from_start.nanosec = divmod(ns, 10**9)
+        expected.points.append(point)
+    assert deserialize_message(raw, JointTrajectory) == expected
+
+
 def test_writers_refuse_the_wrong_length():
+    with pytest.raises(ValueError, match="3 x 7"):
+        JointTrajectoryWriter(NAMES).write((0, 0), [0.0, 0.1, 0.2], np.zeros((3, 7)),
+                                           np.zeros((3, 6)), np.zeros((3, 7)))
+    with pytest.raises(ValueError, match="finite times"):
+        JointTrajectoryWriter(NAMES).write((0, 0), [0.0, -0.1], *np.zeros((3, 2, 7)))
     with pytest.raises(ValueError, match="7 values"):
         JointStateWriter(NAMES).write(0, [0.0] * 6, [0.0] * 7)
     with pytest.raises(ValueError, match="7 values"):
