@@ -55,6 +55,7 @@ from damon_ros.perception.camera import Camera, load_camera
 from damon_ros.perception.tracker_config import load_tracker_config
 from damon_ros.perception.tracking import Track, Tracker
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import marker_array_bytes
 from damon_ros.ros.images import (
     COLOR_ENCODINGS,
     DEPTH_ENCODINGS,
@@ -62,7 +63,13 @@ from damon_ros.ros.images import (
     decode_color,
     decode_depth,
 )
-from damon_ros.ros.markers import SEEN_SUFFIX, class_rgba, delete_marker, shape_to_marker
+from damon_ros.ros.markers import (
+    SEEN_SUFFIX,
+    MarkerRecord,
+    class_rgba,
+    delete_record,
+    shape_record,
+)
 from damon_ros.ros.node_loop import use_realtime_priority
 from damon_ros.ros.node_main import node_main
 from damon_ros.ros.parameters import Param, declare_all
@@ -130,28 +137,28 @@ def decode_image(msg: Image, camera: Camera, depth: bool) -> np.ndarray:
 
 def obstacle_markers(tracks: Sequence[Track], previous: set[tuple[str, int]], frame_id: str,
                      stamp: Time, lifetime_s: float, publish_partial: bool
-                     ) -> tuple[MarkerArray, set[tuple[str, int]]]:
-    """One ADD marker per (published) track, a DELETE for each one no longer published.
+                     ) -> tuple[list[MarkerRecord], set[tuple[str, int]]]:
+    """One ADD marker per (published) track, a DELETE for each one no longer published,
+    as records for `cdr.marker_array_bytes`.
 
     A track's visible surface goes beside it as ``(color + SEEN_SUFFIX, id)`` (see
     :mod:`damon_ros.ros.markers`): what the cameras saw, the rest being its hidden extent.
-    Returns the array and the keys it shows, which are ``previous`` for the next frame.
+    Returns the markers and the keys they show, which are ``previous`` for the next frame.
     """
-    out = MarkerArray()
+    out = []
     shown = set()
     for track in tracks:
         if track.partial and not publish_partial:
             continue
-        out.markers.append(shape_to_marker(track.shape, track.color, track.id, frame_id, stamp,
-                                           lifetime_s, class_rgba(track.color)))
+        out.append(shape_record(track.shape, track.color, track.id, frame_id, stamp,
+                                lifetime_s, class_rgba(track.color)))
         shown.add((track.color, track.id))
         if track.seen is not None:
-            out.markers.append(shape_to_marker(track.seen, track.color + SEEN_SUFFIX, track.id,
-                                               frame_id, stamp, lifetime_s,
-                                               class_rgba(track.color, 1.0)))
+            out.append(shape_record(track.seen, track.color + SEEN_SUFFIX, track.id, frame_id,
+                                    stamp, lifetime_s, class_rgba(track.color, 1.0)))
             shown.add((track.color + SEEN_SUFFIX, track.id))
     for ns, id in sorted(previous - shown):
-        out.markers.append(delete_marker(ns, id, frame_id, stamp))
+        out.append(delete_record(ns, id, frame_id, stamp))
     return out, shown
 
 
@@ -333,7 +340,7 @@ class TrackerNode(Node):
             return
         markers, self._shown = obstacle_markers(tracks, self._shown, self.base_frame, stamp,
                                                 self.lifetime_s, self.publish_partial)
-        self._pub.publish(markers)
+        self._pub.publish(marker_array_bytes(markers))
         latency = clock_seconds(self) - stamp_seconds(stamp)
         self.stats.add(latency, time.perf_counter() - started)
         self.get_logger().debug(f"{len(tracks)} tracks, latency {latency * 1e3:.2f} ms")

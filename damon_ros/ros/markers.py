@@ -44,9 +44,10 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
-from builtin_interfaces.msg import Time
+from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point
 from visualization_msgs.msg import Marker
 
@@ -117,7 +118,33 @@ def _points_extent(points: np.ndarray) -> float:
     return float(np.max(points.max(axis=0) - points.min(axis=0)))
 
 
-def shape_to_marker(
+class MarkerRecord(NamedTuple):
+    """A marker's values before any message object is built: what `to_marker` makes a
+    ``Marker`` of, and `cdr.marker_array_bytes` serialises directly (the tracker's 30 Hz
+    arrays, where building the message objects cost more than tracking a ball). Stamps and
+    durations are (sec, nanosec); ``points`` N x 3 or None."""
+
+    ns: str
+    id: int
+    type: int
+    action: int
+    frame_id: str
+    stamp: tuple[int, int]
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    orientation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    scale: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rgba: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    lifetime: tuple[int, int] = (0, 0)
+    points: np.ndarray | None = None
+    text: str = ""
+
+
+def _stamp_of(stamp: Time | float) -> tuple[int, int]:
+    t = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
+    return (t.sec, t.nanosec)
+
+
+def shape_record(
     shape: Shape,
     ns: str,
     id: int,
@@ -125,7 +152,7 @@ def shape_to_marker(
     stamp: Time | float,
     lifetime_s: float,
     rgba: Sequence[float],
-) -> Marker:
+) -> MarkerRecord:
     """An ADD marker drawing ``shape`` (see the module table); ``text`` carries its name.
 
     ``stamp`` is a ``Time`` message or seconds; ``lifetime_s`` 0 means "until deleted".
@@ -144,31 +171,51 @@ def shape_to_marker(
             raise ValueError(f"points shape spans {extent:.3f} m, more than {MAX_SIZE_M} m")
     elif max(scale) > MAX_SIZE_M:
         raise ValueError(f"{shape.kind} of scale {list(scale)} exceeds {MAX_SIZE_M} m")
-    marker = Marker(ns=ns, id=int(id), action=Marker.ADD, text=shape.name,
-                    frame_locked=False, lifetime=to_duration(float(lifetime_s), "lifetime_s"))
-    marker.header.frame_id = frame_id
-    marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
-    marker.type = {"sphere": Marker.SPHERE, "box": Marker.CUBE, "cylinder": Marker.CYLINDER,
-                   "points": Marker.POINTS}[shape.kind]
-    p, q = shape.position, shape.orientation
-    marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = (float(v) for v in p)
+    lifetime = to_duration(float(lifetime_s), "lifetime_s")
+    kind = {"sphere": Marker.SPHERE, "box": Marker.CUBE, "cylinder": Marker.CYLINDER,
+            "points": Marker.POINTS}[shape.kind]
+    return MarkerRecord(
+        ns, int(id), kind, Marker.ADD, frame_id, _stamp_of(stamp),
+        tuple(float(v) for v in shape.position), tuple(float(v) for v in shape.orientation),
+        tuple(float(v) for v in scale), tuple(float(v) for v in color),
+        (lifetime.sec, lifetime.nanosec),
+        np.asarray(shape.points, dtype=float) if shape.kind == "points" else None, shape.name)
+
+
+def to_marker(record: MarkerRecord) -> Marker:
+    """The ``Marker`` message of a record."""
+    r = record
+    marker = Marker(ns=r.ns, id=r.id, type=r.type, action=r.action, text=r.text,
+                    frame_locked=False, lifetime=Duration(sec=r.lifetime[0],
+                                                          nanosec=r.lifetime[1]))
+    marker.header.frame_id = r.frame_id
+    marker.header.stamp = Time(sec=r.stamp[0], nanosec=r.stamp[1])
+    marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = r.position
     o = marker.pose.orientation
-    o.x, o.y, o.z, o.w = (float(v) for v in q)
-    marker.scale.x, marker.scale.y, marker.scale.z = (float(s) for s in scale)
+    o.x, o.y, o.z, o.w = r.orientation
+    marker.scale.x, marker.scale.y, marker.scale.z = r.scale
     c = marker.color
-    c.r, c.g, c.b, c.a = (float(v) for v in color)
-    if shape.kind == "points":
-        marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in shape.points]
+    c.r, c.g, c.b, c.a = r.rgba
+    if r.points is not None:
+        marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in r.points]
     return marker
+
+
+def shape_to_marker(shape: Shape, ns: str, id: int, frame_id: str, stamp: Time | float,
+                    lifetime_s: float, rgba: Sequence[float]) -> Marker:
+    """`shape_record` as a ``Marker`` message."""
+    return to_marker(shape_record(shape, ns, id, frame_id, stamp, lifetime_s, rgba))
+
+
+def delete_record(ns: str, id: int, frame_id: str, stamp: Time | float) -> MarkerRecord:
+    """A DELETE marker: the obstacle ``(ns, id)`` is gone."""
+    _check_header(ns, id, frame_id)
+    return MarkerRecord(ns, int(id), Marker.ARROW, Marker.DELETE, frame_id, _stamp_of(stamp))
 
 
 def delete_marker(ns: str, id: int, frame_id: str, stamp: Time | float) -> Marker:
-    """A DELETE marker: the obstacle ``(ns, id)`` is gone."""
-    _check_header(ns, id, frame_id)
-    marker = Marker(ns=ns, id=int(id), action=Marker.DELETE)
-    marker.header.frame_id = frame_id
-    marker.header.stamp = stamp if isinstance(stamp, Time) else to_stamp(float(stamp))
-    return marker
+    """`delete_record` as a ``Marker`` message."""
+    return to_marker(delete_record(ns, id, frame_id, stamp))
 
 
 def delete_all_marker(frame_id: str, stamp: Time | float, ns: str = "") -> Marker:

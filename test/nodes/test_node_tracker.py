@@ -205,10 +205,10 @@ def test_dropped_tracks_get_a_delete_marker_and_partial_ones_are_optional():
     stamp = to_stamp(1.0)
     first, shown = tracker.obstacle_markers([track(0, "red"), track(1, "green")], set(), FRAME,
                                             stamp, 0.5, True)
-    assert [(m.ns, m.id, m.action) for m in first.markers] == [("red", 0, 0), ("green", 1, 0)]
+    assert [(m.ns, m.id, m.action) for m in first] == [("red", 0, 0), ("green", 1, 0)]
     second, shown = tracker.obstacle_markers([track(1, "green", partial=True)], shown, FRAME,
                                              stamp, 0.5, False)
-    assert [(m.ns, m.id, m.action) for m in second.markers] == [
+    assert [(m.ns, m.id, m.action) for m in second] == [
         ("green", 1, Marker.DELETE), ("red", 0, Marker.DELETE)]
     assert shown == set()
 
