@@ -143,6 +143,14 @@ def _thinned(times, positions, resolution, rate, step):
 
 
 @njit(cache=True)
+def _scratch(jr, pos, hull):
+    """The arrays a distance query over moved movers writes into: the arm's frames, the
+    best pair, and the movers' moved positions and hull rows."""
+    return (np.empty((jr.shape[0] + 1, 3, 3)), np.empty((jr.shape[0] + 1, 3)),
+            np.empty(2, np.int64), pos.copy(), hull.copy())
+
+
+@njit(cache=True)
 def _translate(tau, velocity, kind, pos, params, hull, moved_pos, moved_hull):
     """Each packed mover translated by its velocity times ``tau`` into ``moved_pos`` and
     ``moved_hull``: its position, and a hull's face rows (corners and plane offset)."""
@@ -169,11 +177,7 @@ def _first_refused(times, Q, tau0, required0, grow_lin, grow_quad, velocity, rob
     instant for all movers, each less its own required distance (the query's ``offset``:
     ``d - need <= 0`` exactly when ``d <= need``): the arm's pose and its bounds once."""
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
-    fr = np.empty((jr.shape[0] + 1, 3, 3))
-    fp = np.empty((jr.shape[0] + 1, 3))
-    where = np.empty(2, np.int64)
-    moved_pos = pos.copy()
-    moved_hull = hull.copy()
+    fr, fp, where, moved_pos, moved_hull = _scratch(jr, pos, hull)
     need = np.empty(kind.shape[0])
     for n in range(times.shape[0]):
         tau = tau0 + times[n]
@@ -324,11 +328,7 @@ def least_distance(robot, times: np.ndarray, positions: np.ndarray,
 def _least_distance(times, Q, tau0, floor, velocity, robot_args, kind, pos, rot, params,
                     hull):
     jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
-    fr = np.empty((jr.shape[0] + 1, 3, 3))
-    fp = np.empty((jr.shape[0] + 1, 3))
-    where = np.empty(2, np.int64)
-    moved_pos = pos.copy()
-    moved_hull = hull.copy()
+    fr, fp, where, moved_pos, moved_hull = _scratch(jr, pos, hull)
     best = np.inf
     for n in range(times.shape[0]):
         _translate(tau0 + times[n], velocity, kind, pos, params, hull, moved_pos, moved_hull)
