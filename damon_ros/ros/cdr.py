@@ -1,7 +1,7 @@
 """The two 1 kHz messages as CDR bytes: ``sensor_msgs/JointState`` and
 ``std_msgs/Float64MultiArray`` written and read without rclpy's message conversion; and
-written from their values, the planner's ``trajectory_msgs/JointTrajectory`` and the
-tracker's ``visualization_msgs/MarkerArray``.
+written from their values, the planner's ``trajectory_msgs/JointTrajectory``, the
+tracker's ``visualization_msgs/MarkerArray`` and the mock camera's ``sensor_msgs/Image``.
 
 Why: rclpy turns a Python message into a C struct and then into CDR on every publish, and
 back on every take, one Python attribute at a time. At 1 kHz that was a large part of the
@@ -405,3 +405,28 @@ def marker_array_bytes(markers: Sequence) -> bytes:
         out.put(_U32, 4, 0)
         out.buf += b"\x00"  # mesh_use_embedded_materials
     return bytes(out.buf)
+
+
+_SIZE = struct.Struct("<II")
+
+
+def image_bytes(array: np.ndarray, encoding: str, stamp: tuple[int, int],
+                frame_id: str) -> bytes:
+    """A serialised ``sensor_msgs/Image`` of an H x W (x C) array: the header, the size
+    fields and the pixels (little-endian, ``is_bigendian`` 0), copied once.
+
+    Why: the mock camera sends 1.5 MB a frame at 30 fps; rclpy turned the message's pixel
+    bytes into its C message and Fast DDS then serialised that, and publishing a frame took
+    ~2.2 ms (p50 in a 10-minute soak, over the 2 ms a frame may take)."""
+    pixels = np.asarray(array)
+    pixels = np.ascontiguousarray(pixels, dtype=pixels.dtype.newbyteorder("<"))
+    if pixels.ndim not in (2, 3):
+        raise ValueError(f"an image is an H x W (x C) array, got shape {pixels.shape}")
+    out = _Out()
+    out.put(_TIME, 4, *stamp)
+    out.string(frame_id)
+    out.put(_SIZE, 4, pixels.shape[0], pixels.shape[1])
+    out.string(encoding)
+    out.buf += b"\x00"  # is_bigendian
+    out.put(_SIZE, 4, pixels.strides[0], pixels.nbytes)  # step, then the data's count
+    return b"".join((out.buf, memoryview(pixels).cast("B")))

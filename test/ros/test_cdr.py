@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
@@ -26,6 +26,7 @@ from damon_ros.ros.cdr import (
     JointStateWriter,
     JointTrajectoryWriter,
     header_stamp,
+    image_bytes,
     marker_array_bytes,
 )
 from damon_ros.ros.inputs import InputError, JointStateReader
@@ -184,6 +185,25 @@ def test_written_marker_arrays_read_back_by_rclpy(records):
     own = serialize_message(MarkerArray(markers=[to_marker(r) for r in records]))
     assert deserialize_message(marker_array_bytes(records), MarkerArray) == (
         deserialize_message(own, MarkerArray))
+
+
+@pytest.mark.parametrize("shape, dtype, encoding", [((5, 7, 3), np.uint8, "rgb8"),
+                                                    ((480, 640), np.uint16, "16UC1"),
+                                                    ((3, 1), np.uint16, "16UC1")])
+def test_written_images_read_back_by_rclpy(shape, dtype, encoding):
+    """Odd sizes and names shift the pixels' offset: rclpy still reads every pixel."""
+    rng = np.random.default_rng(1)
+    pixels = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    raw = image_bytes(pixels, encoding, (12, 345), "camera_color_optical_frame_x")
+    expected = Image(height=shape[0], width=shape[1], encoding=encoding, is_bigendian=0,
+                     step=pixels.strides[0], data=pixels.tobytes())
+    expected.header.stamp.sec, expected.header.stamp.nanosec = 12, 345
+    expected.header.frame_id = "camera_color_optical_frame_x"
+    assert deserialize_message(raw, Image) == expected
+    swapped = pixels.astype(pixels.dtype.newbyteorder(">"))  # the same values, big-endian
+    assert image_bytes(swapped, encoding, (12, 345), "camera_color_optical_frame_x") == raw
+    with pytest.raises(ValueError, match="H x W"):
+        image_bytes(np.zeros(4, np.uint8), "mono8", (0, 0), "c")
 
 
 def test_writers_refuse_the_wrong_length():
