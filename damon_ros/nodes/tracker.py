@@ -219,7 +219,8 @@ class LatencyStats:
         lat = 1e3 * np.asarray(self.latency)
         proc = 1e3 * np.asarray(self.processing)
         return (f"latency stamp->publish p50 {np.median(lat):.2f} ms, p95 "
-                f"{np.percentile(lat, 95):.2f} ms, max {lat.max():.2f} ms; processing p50 "
+                f"{np.percentile(lat, 95):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms, max "
+                f"{lat.max():.2f} ms; processing p50 "
                 f"{np.median(proc):.2f} ms (last {lat.size} frames)")
 
 

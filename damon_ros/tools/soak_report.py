@@ -131,13 +131,14 @@ def report_tables(rows: list[dict]) -> list[str]:
           _fmt(r["js_max_gap_ms"]), _fmt(r["frames_untracked"], "d")] for r in rows])
     latency = _table(
         ["win", "re-routes", "decided p50/p90/p99/max ms", "after input p50/p90/p99/max ms",
-         "plans", "plan p50 ms", "tracker fps", "tracker lat p50/p95 ms"],
+         "plans", "plan p50 ms", "tracker fps", "tracker lat p50/p95/p99 ms"],
         [[str(r["window"]), str(r["reroute_decided_ms"]["n"]),
           _pcts(r["reroute_decided_ms"]), _pcts(r["reroute_after_input_ms"]),
           str(r["plan_decided_ms"]["n"]), _fmt(r["plan_decided_ms"]["p50"]),
           _fmt(r["tracker"].get("tracked_fps")),
           f"{_fmt(r['tracker'].get('latency_p50_ms'))}/"
-          f"{_fmt(r['tracker'].get('latency_p95_ms'))}"] for r in rows])
+          f"{_fmt(r['tracker'].get('latency_p95_ms'))}/"
+          f"{_fmt(r['tracker'].get('latency_p99_ms'))}"] for r in rows])
     names = list(rows[0]["rss_mb"])
     safety = _table(
         ["win", "contacts", "min clr m", "violations v/a/j/pos/q", "a/j jitter", "late cmds",
