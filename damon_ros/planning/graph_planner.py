@@ -336,6 +336,7 @@ class GraphPlanner:
         self.experience: list[np.ndarray] = []  # certified fallback routes, newest last
         self._fallback_failures = 0  # toward the current goal: escalates the budget
         self._moving_start = False  # routing from a moving arm (`_route_moving`): no escalation
+        self._escalate = True  # False during a re-route on a threat (`replan`): no escalation
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
         self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
         # during `_route_in_time`: {"query": the last route search's `_Query`}, which a
@@ -493,8 +494,11 @@ class GraphPlanner:
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
-    def replan(self, q_now: np.ndarray, obstacles=(), qd_now=None) -> PlanResult:
-        """Re-route from the current state toward the goal of the last successful plan."""
+    def replan(self, q_now: np.ndarray, obstacles=(), qd_now=None,
+               escalate: bool = True) -> PlanResult:
+        """Re-route from the current state toward the goal of the last successful plan.
+        ``escalate`` False: the sampling fallback keeps its first budget (a re-route on a
+        threat: `_fallback`)."""
         t0 = time.perf_counter()
         if self.goal_q is None:
             return PlanResult(False, "no goal to re-plan toward")
@@ -502,7 +506,11 @@ class GraphPlanner:
         problem = self._check_start(q_now)
         if problem:
             return PlanResult(False, problem)
-        result = self._route_in_time(q_now, qd_now, self.goal_q, Scene.of(obstacles))
+        self._escalate = escalate
+        try:
+            result = self._route_in_time(q_now, qd_now, self.goal_q, Scene.of(obstacles))
+        finally:
+            self._escalate = True
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
@@ -974,8 +982,11 @@ class GraphPlanner:
             return None, "", ""
         attempt = self._fallback_failures
         # the escalation is for a holding arm's retries: a moving arm coasts on while it
-        # searches (an 0.8 s search let a stress-bench arm run into the mover it re-routed for)
-        budget = self._fallback_budget(0 if self._moving_start else attempt)
+        # searches (an 0.8 s search let a stress-bench arm run into the mover it re-routed
+        # for), and an arm whose trajectory a mover threatens may have to escape it (soak: a
+        # 0.4 s search, then the escape from a mover predicted to reach the arm in 0.27 s)
+        budget = self._fallback_budget(attempt if self._escalate and not self._moving_start
+                                       else 0)
         raw = self._sampling_route(query, budget, seed=attempt)
         path = None if raw is None else self._shortened(raw, query)
         if path is not None:

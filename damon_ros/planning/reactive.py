@@ -443,7 +443,9 @@ class ReactivePlanner:
         the way; without it, evade or hold. On the stress bench the brake was what met a
         mover that had been at rest."""
         t0 = time.perf_counter()
-        result = self.planner.replan(q_now, shapes, qd_now=qd_now)
+        # only a holding arm's retries may search longer each time (`GraphPlanner._fallback`)
+        result = self.planner.replan(q_now, shapes, qd_now=qd_now,
+                                     escalate=self.state == "holding")
         latency = 1e3 * (time.perf_counter() - t0)
         if not result.success:
             self._failure = result.reason

@@ -236,7 +236,7 @@ class _NoRoute(GraphPlanner):
     """The shipped planner with no route and no escape to be found: what is left is to
     stop or to follow on."""
 
-    def replan(self, q_now, obstacles=(), qd_now=None):
+    def replan(self, q_now, obstacles=(), qd_now=None, escalate=True):
         from damon_ros.planning.graph_planner import PlanResult
 
         return PlanResult(False, "no route (test)")

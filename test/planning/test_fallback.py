@@ -106,6 +106,27 @@ def test_a_moving_arm_gets_the_first_budget_not_the_escalated_one(planner, monke
     assert budgets[-1][0] == 16.0  # the escalation goes on
 
 
+def test_a_re_route_on_a_threat_gets_the_first_budget_not_the_escalated_one(planner,
+                                                                           monkeypatch):
+    """An arm whose trajectory a mover threatens may have to escape it next: its search
+    keeps the first budget (in a soak a 0.4 s search ran before the escape from a mover
+    predicted to reach the arm in 0.27 s), and still counts as a failure."""
+    budgets = []
+
+    def nothing(query, budget, seed):
+        budgets.append((budget, seed))
+        return None
+
+    monkeypatch.setattr(planner, "_sampling_route", nothing)
+    obstacles = SCENE.obstacles_at(0.0)
+    for _ in range(2):
+        planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
+    assert not planner.replan(SCENE.start, obstacles, escalate=False).success
+    assert budgets == [(2.0, 0), (4.0, 1), (2.0, 2)]
+    planner.replan(SCENE.start, obstacles)  # a holding arm's retry escalates on
+    assert budgets[-1] == (16.0, 3)
+
+
 def test_an_uncertified_sampling_route_is_never_returned(planner, monkeypatch):
     # a "route" straight through the box: what the checker must refuse
     goal_q = planner.resolve_goal(pose_goal(SCENE), SCENE.start, SCENE.obstacles_at(0.0))[0]
