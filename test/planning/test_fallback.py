@@ -67,7 +67,9 @@ def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, 
     np.testing.assert_allclose(again.path[-1], first.path[-1])
 
 
-def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
+def _failing_searches(planner, monkeypatch) -> list[tuple[float, int]]:
+    """Make every sampling search fail; the returned list receives each one's (budget,
+    seed)."""
     budgets = []
 
     def nothing(query, budget, seed):
@@ -75,6 +77,11 @@ def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
         return None
 
     monkeypatch.setattr(planner, "_sampling_route", nothing)
+    return budgets
+
+
+def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
+    budgets = _failing_searches(planner, monkeypatch)
     reasons = [planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0)).reason
                for _ in range(5)]
     assert budgets == [(2.0, 0), (4.0, 1), (8.0, 2), (16.0, 3), (16.0, 4)]
@@ -86,13 +93,7 @@ def test_a_moving_arm_gets_the_first_budget_not_the_escalated_one(planner, monke
     """The escalation is for a holding arm's retries; an arm in motion coasts on while the
     search runs (an 0.8 s search let a stress-bench arm reach the mover it re-routed
     around), so its searches keep the first budget — and still count as failures."""
-    budgets = []
-
-    def nothing(query, budget, seed):
-        budgets.append((budget, seed))
-        return None
-
-    monkeypatch.setattr(planner, "_sampling_route", nothing)
+    budgets = _failing_searches(planner, monkeypatch)
     obstacles = SCENE.obstacles_at(0.0)
     for _ in range(3):  # a holding arm's retries escalate
         planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
@@ -111,13 +112,7 @@ def test_a_re_route_on_a_threat_gets_the_first_budget_not_the_escalated_one(plan
     """An arm whose trajectory a mover threatens may have to escape it next: its search
     keeps the first budget (in a soak a 0.4 s search ran before the escape from a mover
     predicted to reach the arm in 0.27 s), and still counts as a failure."""
-    budgets = []
-
-    def nothing(query, budget, seed):
-        budgets.append((budget, seed))
-        return None
-
-    monkeypatch.setattr(planner, "_sampling_route", nothing)
+    budgets = _failing_searches(planner, monkeypatch)
     obstacles = SCENE.obstacles_at(0.0)
     for _ in range(2):
         planner.plan(SCENE.start, pose_goal(SCENE), obstacles)
