@@ -115,16 +115,6 @@ def render_settings(camera_config: str, overrides: dict[str, float]) -> RenderSe
     return settings
 
 
-def image_message(array: np.ndarray, encoding: str, stamp, frame_id: str) -> Image:
-    """A sensor_msgs/Image of a C-contiguous little-endian array (rgb8 HxWx3 or 16UC1 HxW)."""
-    msg = Image(height=array.shape[0], width=array.shape[1], encoding=encoding,
-                is_bigendian=0, step=array.strides[0])
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.data = np.ascontiguousarray(array).tobytes()
-    return msg
-
-
 def camera_info_message(camera: Camera, stamp) -> CameraInfo:
     info = camera.camera_info()
     msg = CameraInfo(width=info["width"], height=info["height"],

@@ -39,6 +39,7 @@ from damon_ros.nodes import mock_camera, tracker
 from damon_ros.perception.camera import load_camera
 from damon_ros.perception.tracking import Track
 from damon_ros.ros import topics
+from damon_ros.ros.cdr import image_bytes
 from damon_ros.ros.environment import node_environment
 from damon_ros.ros.launch import read_log
 from damon_ros.ros.markers import ObstacleTable, marker_to_shape
@@ -336,8 +337,9 @@ def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
             def send(t: float, depth_mm: np.ndarray) -> None:
                 stamp = to_stamp(t)
                 pubs[INFO].publish(mock_camera.camera_info_message(camera, stamp))
-                pubs[COLOR].publish(mock_camera.image_message(rgb, "rgb8", stamp, "cam"))
-                pubs[DEPTH].publish(mock_camera.image_message(depth_mm, "16UC1", stamp, "cam"))
+                at = (stamp.sec, stamp.nanosec)
+                pubs[COLOR].publish(image_bytes(rgb, "rgb8", at, "cam"))
+                pubs[DEPTH].publish(image_bytes(depth_mm, "16UC1", at, "cam"))
                 ros.spin_for(0.05)
 
             def tracked_after(t: float) -> int:
@@ -347,7 +349,7 @@ def test_tracker_alone_survives_a_clock_jump_and_empty_depth(tmp_path):
 
             def waiting_for_info() -> bool:  # frames before any camera_info (paced)
                 stamp = to_stamp(1999.0 + (time.monotonic() % 1.0))
-                pubs[COLOR].publish(mock_camera.image_message(rgb, "rgb8", stamp, "cam"))
+                pubs[COLOR].publish(image_bytes(rgb, "rgb8", (stamp.sec, stamp.nanosec), "cam"))
                 ros.spin_for(1 / 30)
                 return bool(log_lines(trk, "no camera_info"))
 
