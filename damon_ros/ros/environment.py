@@ -11,6 +11,7 @@ start: thread limits (`limit_threads`) and an allocator that keeps freed memory
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 import sys
 import tempfile
@@ -162,3 +163,20 @@ def keep_freed_memory() -> str | None:
             and mallopt(_M_TRIM_THRESHOLD, KEPT_HEAP_BYTES) == 1):
         return "mallopt refused the settings: malloc settings unchanged"
     return None
+
+
+def freeze_start_up_heap() -> None:
+    """Collect once, then take every object alive after start-up (modules, the model, the
+    compiled kernels, the node) out of the cyclic collector's generations (`gc.freeze`).
+
+    Why: a full collection walks every tracked object, and a built node holds 70-95
+    thousand of them (rclpy, numpy, scipy, the robot model): measured 10-22 ms a full
+    collection in each node's process, 28-53 ms in a bench process. The collector starts
+    one whenever enough allocations have survived, wherever that happens: inside a 1 kHz
+    tick, a re-route or a frame. After the freeze the same collection walks only what was
+    made since (a bench process: 53 -> 16 ms over 48 stress scenes). Frozen objects are
+    still freed when their last reference goes; only garbage cycles among them stay,
+    and start-up objects live as long as the process anyway.
+    """
+    gc.collect()
+    gc.freeze()

@@ -9,7 +9,7 @@ import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from damon_ros.ros.environment import keep_freed_memory, limit_threads
+from damon_ros.ros.environment import freeze_start_up_heap, keep_freed_memory, limit_threads
 from damon_ros.ros.launch import exit_with_parent
 from damon_ros.ros.parameters import Param, print_help
 
@@ -44,6 +44,7 @@ def _spin(
     executor = make_executor()
     try:
         node = node_factory()
+        freeze_start_up_heap()  # built: what lives now is no collector pause later
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

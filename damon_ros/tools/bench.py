@@ -21,6 +21,7 @@ from collections import defaultdict
 import numpy as np
 
 from damon_ros.core.limits import PROFILES
+from damon_ros.ros.environment import freeze_start_up_heap
 
 PLANNERS = ("damon", "damon-noreplan", "rrt", "rrtstar", "rrtconnect")
 
@@ -91,6 +92,7 @@ def run_scenarios(scenarios, planners, model, out, args) -> list[dict]:
     config = SimConfig(perception=args.perception, perception_latency=args.latency,
                        perception_noise=args.noise, seed=args.seed,
                        cameras=tuple(c.strip() for c in args.cameras.split(",")))
+    freeze_start_up_heap()  # as a node does once built (`node_main`): plans are timed
     records = []
     for scenario in scenarios:
         for name in planners:
@@ -130,6 +132,7 @@ def run_mbm(path, planners, model, out, args) -> list[dict]:
 
     fast = Robot("fast", finger_opening=FINGER_OPENING)
     mesh = Robot("mesh", finger_opening=FINGER_OPENING)
+    freeze_start_up_heap()
     records = []
     for set_name, scenario in load_problems(path, fast, args.per_set):
         if isinstance(scenario, Exception):

@@ -64,3 +64,32 @@ def test_opencv_runs_single_threaded_unless_the_user_says_otherwise():
     clean = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     assert _opencv_threads(clean) == 1
     assert _opencv_threads(dict(clean, OPENCV_FOR_THREADS_NUM="3")) == 3
+
+
+FREEZE = """
+import gc, json, weakref
+from damon_ros.ros.environment import freeze_start_up_heap
+start_up = [{"joint": i} for i in range(50_000)]  # a built node's tens of thousands
+tracked = len(gc.get_objects())
+freeze_start_up_heap()
+class Part:
+    pass
+a, b = Part(), Part()
+a.other, b.other = b, a  # a garbage cycle made after the freeze
+gone = weakref.ref(a)
+del a, b
+gc.collect()
+print(json.dumps({"tracked": tracked, "walked": len(gc.get_objects()),
+                  "frozen": gc.get_freeze_count(), "cycle_freed": gone() is None,
+                  "start_up_kept": len(start_up)}))
+"""
+
+
+def test_start_up_heap_is_frozen_and_later_cycles_are_still_collected():
+    out = subprocess.run([sys.executable, "-c", FREEZE], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got["frozen"] >= got["tracked"] * 0.9, got  # out of every later collection
+    assert got["walked"] < got["tracked"] * 0.05, got  # what a full collection still walks
+    assert got["cycle_freed"], got  # the collector still works on what came after
+    assert got["start_up_kept"] == 50_000
