@@ -304,6 +304,14 @@ class SphereModel:
         return bool(sphere_kernels.segment_clear(q0, q1, steps, margin, *self.kernel_args,
                                                  *self._packed(obstacles)))
 
+    def route_clear(self, path: np.ndarray, margins: np.ndarray, resolution: float,
+                    obstacles: Sequence[Shape]) -> bool:
+        """Every segment k of ``path`` (N, 7) keeps more than ``margins[k]`` at states at
+        most ``resolution`` rad apart, in one compiled call (`sphere_kernels.route_clear`)."""
+        return bool(sphere_kernels.route_clear(
+            np.ascontiguousarray(path, dtype=float), np.asarray(margins, dtype=float),
+            float(resolution), tuple(self.kernel_args), self._packed(obstacles)))
+
     def world_centers(self, Q: np.ndarray) -> np.ndarray:
         """Sphere centres (N, S, 3) of configurations (N, 7)."""
         return self.chain.positions(Q, self.block)

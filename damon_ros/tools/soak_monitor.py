@@ -394,23 +394,29 @@ class Monitor:
             tap.drain()
 
     def _wait_ready(self, deadline: float) -> bool:
-        """Joint states, a planner that has them too, and a matched goal subscriber, or False."""
+        """Joint states, a planner that has them too, obstacle data, and a matched goal
+        subscriber, or False. Obstacles too: a tracker whose compiled kernels were not yet
+        cached (a fresh clone) published its first array 25 s after the planner was ready,
+        and the first goal was dropped after waiting 5 s for obstacle data."""
         while time.time() < deadline and self._alive():
             self._drain()
-            if (self.joints.raw is not None
-                    and planner_has_state(_status_values(self.planner_status.message))
-                    and self.goal_pub.get_subscription_count() > 0):
+            if not self._readiness_missing():
                 return True
             time.sleep(0.02)
         return False
 
-    def _not_ready(self) -> str:
-        missing = [what for what, ok in (
+    def _readiness_missing(self) -> list[str]:
+        obstacles = (topics.SIM_OBSTACLES, "frames") if self.args.no_camera else (
+            topics.OBSTACLES, "obstacles")
+        return [what for what, ok in (
             (topics.JOINT_STATES, self.joints.raw is not None),
             (f"{topics.PLANNER_STATUS} with a fresh joint state",
              planner_has_state(_status_values(self.planner_status.message))),
+            (obstacles[0], self.taps[obstacles[1]].count > 0),
             ("a goal_pose subscriber", self.goal_pub.get_subscription_count() > 0)) if not ok]
-        return ", ".join(missing) or "nothing"
+
+    def _not_ready(self) -> str:
+        return ", ".join(self._readiness_missing()) or "nothing"
 
     def _sleep_until(self, t: float) -> None:
         while time.time() < t:

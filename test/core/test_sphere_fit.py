@@ -113,3 +113,23 @@ def test_contact_band_never_certifies_what_the_meshes_refuse(mesh, fast):
     assert not spheres_only.segment_free(q0, q1, _slot(mesh, q0, 0.012), margin=0.01)
     assert not fast.path_free(np.array([q0]), _slot(mesh, q0, 0.008), margin=0.01)
     assert fast.path_free(np.array([q0]), _slot(mesh, q0, 0.012), margin=0.01)
+
+
+def test_route_clear_answers_as_its_segments_one_by_one(fast):
+    """The compiled route check (waypoints first, then each segment walked) gives the same
+    answer as `segment_clear` asked of each segment with its own margin, on random routes
+    through a cluttered table-top (both answers occur)."""
+    rng = np.random.default_rng(5)
+    spheres = fast.spheres
+    answers = set()
+    for _ in range(200):
+        obstacles = tuple(Shape("box", tuple(rng.uniform(0.05, 0.3, 3)),
+                                rng.uniform((0.2, -0.6, 0.0), (0.8, 0.6, 0.9)), rng.normal(size=4))
+                          for _ in range(int(rng.integers(1, 4))))
+        path = READY + rng.uniform(-0.8, 0.8, (int(rng.integers(2, 6)), 7))
+        margins = rng.uniform(0.0, 0.02, len(path) - 1)
+        expected = all(spheres.segment_clear(a, b, fast.steps(a, b, 0.02), obstacles, m)
+                       for a, b, m in zip(path, path[1:], margins, strict=False))
+        assert spheres.route_clear(path, margins, 0.02, obstacles) == expected
+        answers.add(expected)
+    assert answers == {True, False}
