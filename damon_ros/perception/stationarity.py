@@ -14,10 +14,14 @@ An occluded view is no evidence of motion (:meth:`Stationarity.cut_in_place`): w
 or a passing ball hides part of a still box, the visible part's centre moves by centimetres
 (and a cut-off blob gets another kind of bound), which read as motion made the planner
 sweep the box and hold. A view that shows less of the object than its whole views do
-(flagged partial, or fewer pixels than they had) and whose points all lie in the last whole
-bound grown by ``moving_shift_m`` is what an occluder left of an object in place; its centre
-is kept out of the velocity and the stationarity test. A moving object leaves that bound
-within ``moving_shift_m`` of motion, so it is still seen to move, a few frames late at most.
+(flagged partial, or fewer pixels than they had) and whose points all lie within
+``moving_shift_m`` of the last whole bound's surface (neither outside it by more, nor deeper
+inside) is what an occluder left of an object in place; its centre is kept out of the
+velocity and the stationarity test. A moving object's surface leaves that shell within
+about ``moving_shift_m`` of motion, so it is still seen to move, a few frames late at most.
+Inside the bound is not enough: the visible cap of a ball that sank 10 cm behind the arm
+still lay inside its last whole bound (grown by 2 cm), so it kept zero velocity while it
+sank onto the arm (10-minute soak, 62 mm of contact).
 """
 
 from __future__ import annotations
@@ -52,9 +56,10 @@ class Stationarity:
                      surface: np.ndarray | None) -> bool:
         """Whether a view shows less of the object than its whole views (flagged partial, or
         under `SHRUNK_SHARE` of their pixels) and all it shows (``surface``, base-frame
-        points) lies in the last whole bound grown by ``moving_shift_m``: part of an object
-        in place, hidden by an occluder. Any other view is remembered as whole (its bound
-        ``shape`` and its pixel count, which sets what "fewer" means)."""
+        points) lies within ``moving_shift_m`` of the last whole bound's surface: part of
+        an object in place, hidden by an occluder (a visible surface is the bound's own
+        surface, within the fit's margins). Any other view is remembered as whole (its
+        bound ``shape`` and its pixel count, which sets what "fewer" means)."""
         ordered = sorted(self._areas)  # (a dozen ints: np.median costs 50 us a call)
         typical = float(ordered[len(ordered) // 2]) if ordered else 0.0
         cut = partial or (area_px > 0 and area_px < SHRUNK_SHARE * typical)
@@ -65,7 +70,9 @@ class Stationarity:
             return False
         if self.whole is None or surface is None or not len(surface):
             return False
-        return bool(np.all(contains(self.whole, surface, self.config.moving_shift_m)))
+        shift = self.config.moving_shift_m
+        return bool(np.all(contains(self.whole, surface, shift))
+                    and not np.any(contains(self.whole, surface, -shift)))
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """Take one observation; the velocity to report (zero while still)."""

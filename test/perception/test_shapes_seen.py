@@ -303,6 +303,37 @@ def test_a_box_moving_off_while_partly_hidden_is_seen_to_move_within_a_few_frame
     assert moving and all(v > 0.1 for v in moving), moving  # truth: 0.3 m/s
 
 
+def test_a_resting_ball_that_sinks_while_partly_hidden_is_seen_to_move():
+    """A blue ball rests in full view; a red board slides in front of its lower half, then
+    the ball sinks behind it at 0.133 m/s (the soak's 'drop' ball onto the arm, which hid
+    it). Its visible cap stays inside the last whole bound for 10 cm of sinking; the cap
+    leaving the bound's surface is what tells motion from an occluded ball in place, so it
+    is moving within 0.3 s (before: zero velocity all the way down)."""
+    ball = {"name": "drop", "shape": "sphere", "size": [0.05], "color": "blue",
+            "pose": {"position": [0.5, 0.1, 0.55], "orientation": [0, 0, 0, 1]},
+            "motion": {"type": "waypoints", "waypoints": [[0.0, 0.5, 0.1, 0.55],
+                                                         [1.5, 0.5, 0.1, 0.55],
+                                                         [4.5, 0.5, 0.1, 0.15]]}}
+    board = {"name": "board", "shape": "box", "size": [0.05, 0.25, 0.3], "color": "red",
+             "pose": {"position": [0.9, -0.5, 0.45], "orientation": [0, 0, 0, 1]},
+             "motion": {"type": "waypoints", "waypoints": [[0.0, 0.9, -0.5, 0.45],
+                                                          [0.5, 0.9, -0.5, 0.45],
+                                                          [1.0, 0.9, 0.1, 0.45]]}}
+    scenario = _scenario("A-001", ball, board, drop=True)
+    tracker = Tracker(CAMERA, CONFIG)
+    rng = np.random.default_rng(9)
+    seen = {}
+    for t in np.arange(0.0, 2.1, 1 / 30):
+        rgb, depth = render(CAMERA, scene_at(scenario, t), 0.002, 0.01, rng)
+        (blue,) = [tr for tr in tracker.update(rgb, depth, t) if tr.color == "blue"]
+        seen[round(float(t), 3)] = (float(blue.velocity[2]), blue.partial)
+    resting = [vz for t, (vz, _) in seen.items() if CONFIG.static_hold_s + 0.4 <= t <= 1.5]
+    assert resting and all(vz == 0.0 for vz in resting)
+    assert sum(p for t, (_, p) in seen.items() if t >= 1.5) >= 5  # the board hid it
+    sinking = [vz for t, (vz, _) in seen.items() if t >= 1.5 + 0.3]
+    assert sinking and all(vz < -0.08 for vz in sinking), sinking  # truth: -0.133 m/s
+
+
 # --- several cameras --------------------------------------------------------------------------
 
 
