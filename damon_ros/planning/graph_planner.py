@@ -115,6 +115,8 @@ class PlannerConfig:
 
 APPROACH_RAD = (0.1, 0.2, 0.4)
 """Perturbation scales searched for an approach state into a goal only the meshes accept."""
+QUICK_HANDOVER_S = 0.001
+"""The graph's handover (s) when its last search toward the same goal found no route."""
 EXPERIENCE_REACH_RAD = 1.0
 """A stored route is tried for a query whose start and goal are this close to it."""
 MOVING_RAD_S = 0.05
@@ -337,6 +339,7 @@ class GraphPlanner:
         self._fallback_failures = 0  # toward the current goal: escalates the budget
         self._moving_start = False  # routing from a moving arm (`_route_moving`): no escalation
         self._escalate = True  # False during a re-route on a threat (`replan`): no escalation
+        self._graph_missed = False  # the last route toward this goal: the graph had none
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
         self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
         # during `_route_in_time`: {"query": the last route search's `_Query`}, which a
@@ -488,6 +491,7 @@ class GraphPlanner:
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
         if self.goal_q is None or not np.array_equal(self.goal_q, q_goal):
             self._fallback_failures = 0
+            self._graph_missed = False
         self.goal_q = q_goal
         result = self._route_in_time(q_start, qd_start, q_goal, scene)
         result.timing_ms["ik"] = 1e3 * (t_ik - t0)
@@ -913,6 +917,8 @@ class GraphPlanner:
             "query"))
         if reuse is not None:
             reuse["query"] = query
+        if self._graph_missed:  # the graph had no route here last time: hand over sooner
+            query.deadline = min(query.deadline, t0 + QUICK_HANDOVER_S)
         path = self._from_experience(query)
         if path is not None:  # the same blockage as before: no graph search first
             return PlanResult(True, "", path=path, trajectory=self._time_parameterize(path),
@@ -933,6 +939,7 @@ class GraphPlanner:
                     time.perf_counter() >= query.deadline:
                 break
         t_search = time.perf_counter()
+        self._graph_missed = path_ids is None
         result = PlanResult(False, "", goal_q=q_goal, subgraph=int(order[0]) if len(order) else -1,
                             searched_nodes=searched, lazy_iterations=query.iterations)
         if path_ids is None:

@@ -11,6 +11,7 @@ from damon_ros.core.limits import joint_limits
 from damon_ros.core.robot import Robot
 from damon_ros.core.scenario import load_public_scenarios
 from damon_ros.learning.bundle import DamonModel
+from damon_ros.planning import graph_planner
 from damon_ros.planning.graph_planner import GraphPlanner, PlannerConfig
 from damon_ros.simulation.closed_loop import pose_goal
 
@@ -78,6 +79,40 @@ def _failing_searches(planner, monkeypatch) -> list[tuple[float, int]]:
 
     monkeypatch.setattr(planner, "_sampling_route", nothing)
     return budgets
+
+
+def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
+        planner, monkeypatch):
+    """The graph found no route to a goal and the fallback did: the next search toward the
+    same goal gives the graph QUICK_HANDOVER_S, not ``handover_s`` (its lazy iterations
+    only delayed the search that finds one); a new goal gets the full handover again."""
+    created, searched = [], []
+    real_init, real_search = graph_planner._Query.__init__, planner._lazy_astar
+
+    def init(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        created.append(self.deadline)
+
+    def search(query, active):
+        searched.append(query.deadline)
+        return real_search(query, active)
+
+    monkeypatch.setattr(graph_planner._Query, "__init__", init)
+    monkeypatch.setattr(planner, "_lazy_astar", search)
+    obstacles, goal = SCENE.obstacles_at(0.0), pose_goal(SCENE)
+
+    def plan_and_handover(goal) -> float:
+        created.clear(), searched.clear()
+        planner.experience = []  # no stored route: the graph is searched every time
+        assert planner.plan(SCENE.start, goal, obstacles).success
+        return created[-1] - searched[-1]  # how much the handover was cut
+
+    assert plan_and_handover(goal) == 0.0  # the graph's first search: the full handover
+    cut = graph_planner.PlannerConfig().handover_s - graph_planner.QUICK_HANDOVER_S
+    assert plan_and_handover(goal) >= cut - 1e-9  # missed before: handed over sooner
+    other = planner.plan(SCENE.start, goal, obstacles).goal_q.copy()
+    other[0] += 0.05
+    assert plan_and_handover(other) == 0.0  # another goal: the full handover again
 
 
 def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
