@@ -84,8 +84,8 @@ def _failing_searches(planner, monkeypatch) -> list[tuple[float, int]]:
 def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
         planner, monkeypatch):
     """The graph found no route to a goal and the fallback did: the next search toward the
-    same goal gives the graph QUICK_HANDOVER_S, not ``handover_s`` (its lazy iterations
-    only delayed the search that finds one); a new goal gets the full handover again."""
+    same goal gives the graph a fifth of ``handover_s`` (its lazy iterations only delayed
+    the search that finds one); a new goal gets the full handover again."""
     created, searched = [], []
     real_init, real_search = graph_planner._Query.__init__, planner._lazy_astar
 
@@ -108,7 +108,7 @@ def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
         return created[-1] - searched[-1]  # how much the handover was cut
 
     assert plan_and_handover(goal) == 0.0  # the graph's first search: the full handover
-    cut = graph_planner.PlannerConfig().handover_s - graph_planner.QUICK_HANDOVER_S
+    cut = (1.0 - graph_planner.QUICK_HANDOVER_SHARE) * planner.config.graph_budget()
     assert plan_and_handover(goal) >= cut - 1e-9  # missed before: handed over sooner
     other = planner.plan(SCENE.start, goal, obstacles).goal_q.copy()
     other[0] += 0.05
