@@ -19,7 +19,7 @@ sweep the box and hold. A view that shows less of the object than its whole view
 inside) is what an occluder left of an object in place; its centre is kept out of the
 velocity and the stationarity test. A moving object's surface leaves that shell within
 about ``moving_shift_m`` of motion, so it is still seen to move, a few frames late at most.
-Inside the bound is not enough: the visible cap of a ball that sank 10 cm behind the arm
+Inside the bound is not enough: the visible cap of a ball that sank 10 cm behind an occluder
 still lay inside its last whole bound (grown by 2 cm), so it kept zero velocity while it
 sank onto the arm (10-minute soak, 62 mm of contact).
 """

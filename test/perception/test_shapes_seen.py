@@ -305,10 +305,10 @@ def test_a_box_moving_off_while_partly_hidden_is_seen_to_move_within_a_few_frame
 
 def test_a_resting_ball_that_sinks_while_partly_hidden_is_seen_to_move():
     """A blue ball rests in full view; a red board slides in front of its lower half, then
-    the ball sinks behind it at 0.133 m/s (the soak's 'drop' ball onto the arm, which hid
-    it). Its visible cap stays inside the last whole bound for 10 cm of sinking; the cap
-    leaving the bound's surface is what tells motion from an occluded ball in place, so it
-    is moving within 0.3 s (before: zero velocity all the way down)."""
+    the ball sinks behind it at 0.133 m/s (the soak's 'drop' ball, which sank onto the
+    arm while partly hidden). Its visible cap stays inside the last whole bound for 10 cm
+    of sinking; the cap leaving the bound's surface is what tells motion from an occluded
+    ball in place, so it is moving within 0.3 s (before: zero velocity all the way down)."""
     ball = {"name": "drop", "shape": "sphere", "size": [0.05], "color": "blue",
             "pose": {"position": [0.5, 0.1, 0.55], "orientation": [0, 0, 0, 1]},
             "motion": {"type": "waypoints", "waypoints": [[0.0, 0.5, 0.1, 0.55],
