@@ -375,11 +375,8 @@ def route_clear(path, margins, resolution, robot, obstacles):
     apart: `motion_clear` of each, the segments' end states first (a stored route that no
     longer passes usually fails at one of its waypoints, found before any segment is walked
     in full). The same answer as the segments one by one."""
-    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot
-    kind, pos, rot, params, hull = obstacles
-    for k in range(path.shape[0] - 1):
-        if not segment_clear(path[k + 1], path[k + 1], 0, margins[k], jr, jp, sj, sc, sr, gj,
-                             gs, ge, gc, gr, jb, kind, pos, rot, params, hull):
+    for k in range(path.shape[0] - 1):  # a segment of no length: its one state
+        if not motion_clear(path[k + 1], path[k + 1], margins[k], resolution, robot, obstacles):
             return False
     for k in range(path.shape[0] - 1):
         if not motion_clear(path[k], path[k + 1], margins[k], resolution, robot, obstacles):

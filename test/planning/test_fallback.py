@@ -102,7 +102,8 @@ def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
     obstacles, goal = SCENE.obstacles_at(0.0), pose_goal(SCENE)
 
     def plan_and_handover(goal) -> float:
-        created.clear(), searched.clear()
+        created.clear()
+        searched.clear()
         planner.experience = []  # no stored route: the graph is searched every time
         assert planner.plan(SCENE.start, goal, obstacles).success
         return created[-1] - searched[-1]  # how much the handover was cut
