@@ -198,19 +198,23 @@ def camera_views(prefixes: Sequence[str], configs: Sequence[str], sync_tolerance
 
 @dataclass
 class LatencyStats:
-    """Stamp -> publication latencies and processing times of recent frames (seconds)."""
+    """Stamp -> publication latencies, processing times and the CPU time the processing took
+    of recent frames (seconds). Processing well above its CPU time means the node waited for a
+    core (a busy machine), not that tracking grew slower."""
 
     latency: deque
     processing: deque
+    cpu: deque
     frames: int = 0
 
     @classmethod
     def empty(cls) -> LatencyStats:
-        return cls(deque(maxlen=LATENCY_HISTORY), deque(maxlen=LATENCY_HISTORY))
+        return cls(*(deque(maxlen=LATENCY_HISTORY) for _ in range(3)))
 
-    def add(self, latency_s: float, processing_s: float) -> None:
+    def add(self, latency_s: float, processing_s: float, cpu_s: float) -> None:
         self.latency.append(latency_s)
         self.processing.append(processing_s)
+        self.cpu.append(cpu_s)
         self.frames += 1
 
     def summary(self) -> str:
@@ -221,7 +225,8 @@ class LatencyStats:
         return (f"latency stamp->publish p50 {np.median(lat):.2f} ms, p95 "
                 f"{np.percentile(lat, 95):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms, max "
                 f"{lat.max():.2f} ms; processing p50 "
-                f"{np.median(proc):.2f} ms (last {lat.size} frames)")
+                f"{np.median(proc):.2f} ms, its CPU time p50 {1e3 * np.median(self.cpu):.2f} ms "
+                f"(last {lat.size} frames)")
 
 
 # --- the node ---------------------------------------------------------------------------------
@@ -328,7 +333,7 @@ class TrackerNode(Node):
 
     def _track(self, i: int, color: tuple[np.ndarray, Time],
                depth: tuple[np.ndarray, Time]) -> None:
-        started = time.perf_counter()
+        started, cpu_started = time.perf_counter(), time.thread_time()
         rgb, stamp = color
         try:
             tracks = self.tracker.update_camera(i, self.views[i].camera, rgb, depth[0],
@@ -343,7 +348,8 @@ class TrackerNode(Node):
                                                 self.lifetime_s, self.publish_partial)
         self._pub.publish(marker_array_bytes(markers))
         latency = clock_seconds(self) - stamp_seconds(stamp)
-        self.stats.add(latency, time.perf_counter() - started)
+        self.stats.add(latency, time.perf_counter() - started,
+                       time.thread_time() - cpu_started)
         self.get_logger().debug(f"{len(tracks)} tracks, latency {latency * 1e3:.2f} ms")
 
     def _log_stats(self) -> None:

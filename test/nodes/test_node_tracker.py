@@ -46,6 +46,7 @@ from damon_ros.ros.markers import ObstacleTable, marker_to_shape
 from damon_ros.ros.problems import ProblemLog
 from damon_ros.ros.stamps import stamp_seconds, to_stamp
 from damon_ros.simulation.renderer import render, scene_at
+from damon_ros.tools import soak_monitor
 
 SCENARIOS = public_scenarios_dir()
 COLOR, DEPTH, INFO = topics.COLOR_IMAGE, topics.DEPTH_IMAGE, topics.CAMERA_INFO
@@ -213,6 +214,16 @@ def test_dropped_tracks_get_a_delete_marker_and_partial_ones_are_optional():
         ("green", 1, Marker.DELETE), ("red", 0, Marker.DELETE)]
     assert shown == set()
 
+
+
+def test_stats_line_gives_cpu_time_beside_processing_and_the_soak_reads_it():
+    stats = tracker.LatencyStats.empty()
+    for k in range(1, 4):
+        stats.add(0.010 * k, 0.004 * k, 0.002 * k)
+    line = f"[12.5] [tracker]: 30.0 frames/s tracked; {stats.summary()}"
+    assert "processing p50 8.00 ms, its CPU time p50 4.00 ms (last 3 frames)" in line
+    match = soak_monitor.TRACKER_STATS.search(line)
+    assert match is not None and float(match.group(3)) == pytest.approx(20.0)
 
 # --- over DDS -----------------------------------------------------------------------------------
 
