@@ -215,7 +215,6 @@ def test_dropped_tracks_get_a_delete_marker_and_partial_ones_are_optional():
     assert shown == set()
 
 
-
 def test_stats_line_gives_cpu_time_beside_processing_and_the_soak_reads_it():
     stats = tracker.LatencyStats.empty()
     for k in range(1, 4):
@@ -224,6 +223,7 @@ def test_stats_line_gives_cpu_time_beside_processing_and_the_soak_reads_it():
     assert "processing p50 8.00 ms, its CPU time p50 4.00 ms (last 3 frames)" in line
     match = soak_monitor.TRACKER_STATS.search(line)
     assert match is not None and float(match.group(3)) == pytest.approx(20.0)
+
 
 # --- over DDS -----------------------------------------------------------------------------------
 
