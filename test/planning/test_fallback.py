@@ -1,6 +1,6 @@
 """The complete fallback: where the graph has no route, RRT-Connect under the same checker
-finds one, it is certified before it is returned, reused the next time, and a failing
-search escalates instead of repeating itself."""
+finds one, it is certified before it is returned, reused the next time the graph has none,
+and a failing search escalates instead of repeating itself."""
 
 from __future__ import annotations
 
@@ -68,6 +68,21 @@ def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, 
     np.testing.assert_allclose(again.path[-1], first.path[-1])
 
 
+def test_a_stored_route_serves_only_where_the_graph_has_none(robots, monkeypatch):
+    """Stored routes are detours found around an earlier blockage; tried before the graph,
+    they served most soak decisions with motions about three times a graph route's."""
+    planner = GraphPlanner(DamonModel.load().graph, robots[0], joint_limits("panda"),
+                           PlannerConfig(time_budget_s=5.0, fallback_budget_s=2.0))
+    planner.warm_up()
+    obstacles, goal = SCENE.obstacles_at(0.0), pose_goal(SCENE)
+    first = planner.plan(SCENE.start, goal, obstacles)
+    assert first.success and first.source == "graph"
+    planner.experience = [first.path.copy()]  # a stored route that fits this query
+    assert planner.plan(SCENE.start, goal, obstacles).source == "graph"
+    monkeypatch.setattr(planner, "_lazy_astar", lambda query, active: None)
+    assert planner.plan(SCENE.start, goal, obstacles).source == "experience"
+
+
 def _failing_searches(planner, monkeypatch) -> list[tuple[float, int]]:
     """Make every sampling search fail; the returned list receives each one's (budget,
     seed)."""
@@ -104,7 +119,7 @@ def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
     def plan_and_handover(goal) -> float:
         created.clear()
         searched.clear()
-        planner.experience = []  # no stored route: the graph is searched every time
+        planner.experience = []  # no stored route: each search runs the sampling fallback
         assert planner.plan(SCENE.start, goal, obstacles).success
         return created[-1] - searched[-1]  # how much the handover was cut
 
