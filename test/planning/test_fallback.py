@@ -71,8 +71,11 @@ def test_a_route_the_graph_lacks_is_found_certified_and_reused(planner, robots, 
 def test_a_stored_route_serves_only_where_the_graph_has_none(robots, monkeypatch):
     """Stored routes are detours found around an earlier blockage; tried before the graph,
     they served most soak decisions with motions about three times a graph route's."""
+    # the graph's search gets all the time it needs (a loaded machine overran the 5 ms
+    # handover, and the fallback answered)
     planner = GraphPlanner(DamonModel.load().graph, robots[0], joint_limits("panda"),
-                           PlannerConfig(time_budget_s=5.0, fallback_budget_s=2.0))
+                           PlannerConfig(time_budget_s=5.0, fallback_budget_s=2.0,
+                                         handover_s=5.0))
     planner.warm_up()
     obstacles, goal = SCENE.obstacles_at(0.0), pose_goal(SCENE)
     first = planner.plan(SCENE.start, goal, obstacles)
