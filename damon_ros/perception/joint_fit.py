@@ -22,6 +22,7 @@ import numpy as np
 from damon_ros.core.shapes import Shape, contains, volume
 from damon_ros.perception.camera import Camera
 from damon_ros.perception.tight_fit import fit_box_seen
+from damon_ros.perception.tilted_box import fit_tilted_box
 from damon_ros.perception.tracker_config import TrackerConfig
 
 
@@ -46,7 +47,8 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
     ``views``: per camera, its own bound of the object, the base-frame points it saw and
     whether its view is flagged partial (its points count, its silhouette bounds nothing).
     Spheres (or cylinders) in every view give the smallest of them that all points agree
-    with; boxes (or hulls) the upright box of the union (`tight_fit.fit_box_seen`). None
+    with; boxes (or hulls) the upright box of the union (`tight_fit.fit_box_seen`), else its
+    box in any orientation (`tilted_box.fit_tilted_box`). None
     when fewer than two views have points or the union fits no such shape: the caller
     keeps its fused bound.
     """
@@ -57,7 +59,9 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
     if kinds == {"sphere"} or kinds == {"cylinder"}:
         return _smallest_agreed(seen, config)
     if kinds <= {"box", "points"}:
-        fit = fit_box_seen([(c, p) for c, _, p, _ in seen], config, name,
-                           [cut for *_, cut in seen])
+        points, cuts = [(c, p) for c, _, p, _ in seen], [cut for *_, cut in seen]
+        fit = fit_box_seen(points, config, name, cuts)
+        if fit is None:  # no upright box: a box turned about a horizontal axis?
+            fit = fit_tilted_box(points, config, name, cuts)
         return None if fit is None else fit.shape
     return None

@@ -21,6 +21,7 @@ from damon_ros.perception.camera import Camera
 from damon_ros.perception.fit_kernels import median, sphere_fit
 from damon_ros.perception.segmentation import Blob
 from damon_ros.perception.tight_fit import fit_box, fit_cylinder, hull_points
+from damon_ros.perception.tilted_box import fit_tilted_box
 from damon_ros.perception.tracker_config import TrackerConfig
 
 MAD_TO_SIGMA = 1.4826
@@ -185,6 +186,9 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
         cylinder = fit_cylinder(camera, base, config, name)
         if cylinder is not None:
             return Estimate(cylinder, False)
+        tilted = fit_tilted_box([(camera, base)], config, name)
+        if tilted is not None:  # a box turned about a horizontal axis
+            return Estimate(tilted.shape, False)
         return Estimate(hull_points(camera, points, config, name), False)
     ranges = np.sqrt((points_t * points_t).sum(axis=0))
     far = local * (1.0 + width / ranges)  # each point pushed back along its ray by width

@@ -130,15 +130,40 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
         on_face = (near_low | near_high).any(axis=1)
         if on_face.mean() < BOX_SHARE:
             return None
+    bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config)
+    if bound is None:
+        return None
+    lo, hi, seen, hidden, ends_by = bound
+    error = min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(face_width, 1e-3)), MAX_YAW_ERROR_RAD)
+    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, error)
+    centre = axes @ (0.5 * (lo + hi))
+    q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
+    shape = Shape("box", tuple(hi - lo), centre, q, name=name)
+    return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[bool],
+                   axes: np.ndarray, local: np.ndarray, near_low: np.ndarray,
+                   near_high: np.ndarray, config: TrackerConfig) -> tuple | None:
+    """The box bound of the views' points in a box frame (``axes``: its axes as columns,
+    ``local`` the points in it, ``near_low`` / ``near_high`` which lie near its robust
+    planes), before the frame's own error is allowed for: ``(lo, hi, seen, hidden,
+    ends_by)``, each axis bounded by a visible face's plane, a silhouette or the class
+    prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which, for
+    `_skewed`), or None when the faces do not make a box."""
+    tol = config.face_tolerance_m
     low, high = local.min(axis=0), local.max(axis=0)
-    need = max(8, int(FACE_SHARE * len(points)))
+    need = max(8, int(FACE_SHARE * len(local)))
     # visible[k, 0] / [k, 1]: the face at low / high of axis k faces a camera (by more than
     # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
     owner = np.repeat(np.arange(len(views)), [len(p) for _, p in views])
     per_view = [_BoxView(camera, axes, owner == v, local, near_low, near_high, low, high,
                          config, not cut[v]) for v, (camera, _) in enumerate(views)]
+    # (its own points: those near another face's plane too are mostly that face's rim,
+    # and a face seen edge-on by every camera had only those)
+    edge = _on_other_faces(near_low, near_high)
     visible = np.logical_or.reduce([w.facing for w in per_view]) & np.column_stack(
-        [near_low.sum(axis=0) >= need, near_high.sum(axis=0) >= need])
+        [(near_low & ~edge).sum(axis=0) >= need, (near_high & ~edge).sum(axis=0) >= need])
     if not visible.any() or _tilted(local, near_low, near_high, visible):
         return None
     margin_face = config.surface_margin_m
@@ -149,7 +174,6 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
     # noise beyond it on each face, ~6 mm a face): the plane bounds it (plane-bounded faces)
     low, high = _face_planes(local, near_low, near_high, visible, low, high, tol)
     lo, hi = low.copy(), high.copy()
-    error = min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(face_width, 1e-3)), MAX_YAW_ERROR_RAD)
     for k in range(3):
         others = [j for j in range(3) if j != k and visible[j].any()]
         if others:
@@ -185,11 +209,7 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
             return None
         seen.append(False)
         hidden.append(extra)
-    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, error)
-    centre = axes @ (0.5 * (lo + hi))
-    q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
-    shape = Shape("box", tuple(hi - lo), centre, q, name=name)
-    return BoxFit(shape, tuple(seen), tuple(hidden))
+    return lo, hi, seen, hidden, ends_by
 
 
 def _box_frame(points: np.ndarray, yaw: float, tol: float) -> tuple:
@@ -323,18 +343,30 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
     return sign * max(bound, extreme), corner
 
 
+def _on_other_faces(near_low: np.ndarray, near_high: np.ndarray) -> np.ndarray:
+    """N x 3: whether each point lies near a plane of an axis other than each axis."""
+    near = near_low | near_high
+    return np.column_stack([near[:, [1, 2]].any(axis=1), near[:, [0, 2]].any(axis=1),
+                            near[:, [0, 1]].any(axis=1)])
+
+
 def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
                  visible: np.ndarray, low: np.ndarray, high: np.ndarray,
                  tol: float) -> tuple[np.ndarray, np.ndarray]:
     """``low`` and ``high`` with each visible face's extreme replaced by its plane: the
     median of the points near it, then of those within ``tol`` of that (the first window,
     around the robust extreme, is lopsided; the second is centred on the face; a mean of
-    it left a grazing top face's far points out)."""
+    it left a grazing top face's far points out). Only the face's own points count where
+    it has 8 of them: those near another face's plane too are mostly that face's, within
+    ``tol`` of the edge and inside this plane, and a small face seen obliquely (a tumbling
+    box's) had its plane pulled 1-2 mm inward by them."""
     low, high = low.copy(), high.copy()
+    edge = _on_other_faces(near_low, near_high)
     for k in range(3):
         for side, near, out in ((0, near_low, low), (1, near_high, high)):
             if visible[k, side]:
-                values = local[near[:, k], k]
+                own = near[:, k] & ~edge[:, k]
+                values = local[own if np.count_nonzero(own) >= 8 else near[:, k], k]
                 plane = median(values)
                 out[k] = median(values[np.abs(values - plane) <= tol])
     return low, high
