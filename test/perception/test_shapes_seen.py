@@ -426,6 +426,26 @@ def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
         assert shapes.volume(track.shape) < 1.4 * shapes.volume(truth)
 
 
+def test_two_synchronised_cameras_fit_one_turned_box_to_all_they_saw():
+    """A box turned about a horizontal axis, seen from the front and the side at once, is
+    tracked as one box that contains it (fitted to both cameras' points: 1.44-1.46 times
+    its volume here; the meet of the two cameras' own boxes was 1.46-1.56; each camera's
+    blob bound before was several times it)."""
+    q = np.array([0.3088, -0.6814, -0.6249, 0.2231])
+    box = {"name": "b", "shape": "box", "size": [0.064, 0.088, 0.077], "color": "red",
+           "pose": {"position": [0.5, 0.1, 0.4], "orientation": (q / np.linalg.norm(q)).tolist()}}
+    side = load_camera("camera_side.yaml")
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (CAMERA, side)]
+        (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, side], frames, 0.0)
+        assert track.shape.kind == "box"
+        assert _inside(track.shape, [truth]) == 1.0
+        assert shapes.volume(track.shape) < 2.0 * shapes.volume(truth)
+
+
 def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
     """Two cameras whose frames are 15 ms apart (the tracker node's case): each frame is
     fused with the other camera's latest one, grown by max_speed x age, so the bound of a
