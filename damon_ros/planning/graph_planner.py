@@ -1241,12 +1241,17 @@ class GraphPlanner:
         if not scene.now:
             return PlanResult(False, "nothing to escape from")
         rng = rng or np.random.default_rng(0)
-        brake, q0 = None, q_now
+        brake, q0, brake_free = None, q_now, True
         if qd_now is not None and float(np.max(np.abs(qd_now))) >= MOVING_RAD_S:
             brake = self.stop_trajectory(q_now, np.asarray(qd_now, float))
             q0 = brake.positions[-1]
-            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or not _Query(
-                    self, q_now, q0, scene).segment_certified(q_now, q0, first=True):
+            # a brake into a mover's grown region leaves only the last resort below (a
+            # two-camera stress run: an arm on a last-resort escape, refused every move for
+            # its brake, held and was hit); one that meets a static obstacle, nothing
+            brake_free = _Query(self, q_now, q0, scene).segment_certified(q_now, q0, first=True)
+            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or not brake_free and not \
+                    _Query(self, q_now, q0, scene.statics()).segment_certified(q_now, q0,
+                                                                                first=True):
                 return PlanResult(False, "no certified escape move found (braking from the "
                                   "current speed is not certified free)")
         ranking = (*scene.ahead, *self._predicted(scene))
@@ -1283,7 +1288,8 @@ class GraphPlanner:
                 path = np.vstack([q_now[None], path])
                 trajectory = concatenate(brake, trajectory)
             moves.append((i, path, trajectory))
-            if (not scene.moving or self._rests_clear(trajectory, scene, margin, not_before)) \
+            if brake_free and (not scene.moving or self._rests_clear(trajectory, scene, margin,
+                                                                      not_before)) \
                     and self_free(q0, pool[i]):
                 return self._escape_result(f"escaping: clearance {current:.3f} → "
                                            f"{clear[i]:.3f} m", path, trajectory, query, t0)

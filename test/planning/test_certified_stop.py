@@ -10,6 +10,7 @@ from test_space_time import AGE, _long_move  # the space-time tests' move and da
 from damon_ros.core.limits import READY, joint_limits
 from damon_ros.core.robot import Robot
 from damon_ros.core.shapes import Shape
+from damon_ros.planning import graph_planner
 from damon_ros.planning.graph_planner import (
     BRAKE_LATENCY_S,
     REST_HORIZON_S,
@@ -307,12 +308,17 @@ def test_a_holding_arm_above_a_ball_that_starts_rising_gets_out(planner, fast, g
     result = planner.escape(q, scene)
     assert result.success, result.reason
     assert ("last resort" in result.reason) == (gap < 0.02)
-    tr = result.trajectory
+    assert _keeps_clear(fast, result.trajectory, ball, v)
+
+
+def _keeps_clear(fast, tr, ball: Shape, v: np.ndarray) -> bool:
+    """Whether the trajectory, then a second at rest at its end, keeps clear of the ball's
+    true motion (velocity ``v``, reported ``AGE`` late)."""
     times = np.concatenate([tr.times, tr.duration + np.linspace(0.01, 1.0, 50)])
     states = np.vstack([tr.positions, np.repeat(tr.positions[-1:], 50, axis=0)])
     gaps = [float(fast.distances(s[None], [ball.moved_to(ball.position + v * (t + AGE))])[0])
             for t, s in zip(times, states, strict=True)]
-    assert min(gaps) > 0.0
+    return min(gaps) > 0.0
 
 
 def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_mover(planner, fast):
@@ -340,3 +346,37 @@ def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_move
     box = Shape("box", (0.05, 0.05, 0.05), end, name="box")
     event = runtime.update(t + 0.01, at, [(later, v), (box, np.zeros(3))], qd_now=qd)
     assert event is not None, "the last resort ran on into a static box"
+
+
+
+def test_a_brake_refused_only_for_a_movers_grown_region_still_leaves_the_last_resort(
+        planner, fast, monkeypatch):
+    """A moving arm whose brake is refused escaped nowhere: every escape starts with that
+    brake. Refused only for a mover's grown region (the arm is already inside it), the
+    brake still leaves the last resort, judged by the movers' nominal paths (it keeps clear
+    of the ball's true motion here); refused for a static obstacle, it leaves nothing. (A
+    two-camera stress run and S-v1-1.5-s1205-000: the arm, on a last-resort escape, was
+    refused every move for its brake, held, and was hit.)"""
+    q = READY.copy()
+    p, _ = fast.tcp_pose(q)
+    v = np.array([-1.2, 0.0, 0.0])
+    ball = Shape("sphere", (0.05,), p + np.array([0.3, 0.0, 0.0]), name="ball")
+    scene = Scene((ball,), (swept(ball, v, 0.3),), ((ball, v),), AGE)
+    qd = np.zeros(7)
+    qd[0] = 0.3
+    real = graph_planner._Query.segment_certified
+    refuse = {"with movers": True, "statics": False}
+
+    def brake_refused(self, a, b, first=False):
+        if np.array_equal(a, q) and first:  # the brake: from the measured state
+            if self.scene.moving and refuse["with movers"] or refuse["statics"]:
+                return False
+        return real(self, a, b, first=first)
+
+    monkeypatch.setattr(graph_planner._Query, "segment_certified", brake_refused)
+    result = planner.escape(q, scene, qd_now=qd)
+    assert result.success and result.source == "last resort", result.reason
+    assert _keeps_clear(fast, result.trajectory, ball, v)
+    refuse["statics"] = True
+    result = planner.escape(q, scene, qd_now=qd)
+    assert not result.success and "braking" in result.reason
