@@ -134,13 +134,17 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
     if bound is None:
         return None
     lo, hi, seen, hidden, ends_by = bound
-    error = min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(face_width, 1e-3)), MAX_YAW_ERROR_RAD)
-    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, error)
+    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, frame_error(face_width))
     centre = axes @ (0.5 * (lo + hi))
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
 
+
+def frame_error(width: float) -> float:
+    """The remaining angle error of a box frame fitted to a face ``width`` wide: depth
+    noise over the width, within [`YAW_ERROR_RAD`, `MAX_YAW_ERROR_RAD`]."""
+    return min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(width, 1e-3)), MAX_YAW_ERROR_RAD)
 
 def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[bool],
                    axes: np.ndarray, local: np.ndarray, near_low: np.ndarray,
@@ -161,7 +165,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
                          config, not cut[v]) for v, (camera, _) in enumerate(views)]
     # (its own points: those near another face's plane too are mostly that face's rim,
     # and a face seen edge-on by every camera had only those)
-    edge = _on_other_faces(near_low, near_high)
+    edge = on_other_faces(near_low, near_high)
     visible = np.logical_or.reduce([w.facing for w in per_view]) & np.column_stack(
         [(near_low & ~edge).sum(axis=0) >= need, (near_high & ~edge).sum(axis=0) >= need])
     if not visible.any() or _tilted(local, near_low, near_high, visible):
@@ -172,7 +176,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     ends_by = [["prior", "prior"] for _ in range(2)]
     # a visible face is its fitted plane, not its farthest noisy point (~3 sigma of depth
     # noise beyond it on each face, ~6 mm a face): the plane bounds it (plane-bounded faces)
-    low, high = _face_planes(local, near_low, near_high, visible, low, high, tol)
+    low, high = _face_planes(local, near_low, near_high, edge, visible, low, high, tol)
     lo, hi = low.copy(), high.copy()
     for k in range(3):
         others = [j for j in range(3) if j != k and visible[j].any()]
@@ -343,7 +347,7 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
     return sign * max(bound, extreme), corner
 
 
-def _on_other_faces(near_low: np.ndarray, near_high: np.ndarray) -> np.ndarray:
+def on_other_faces(near_low: np.ndarray, near_high: np.ndarray) -> np.ndarray:
     """N x 3: whether each point lies near a plane of an axis other than each axis."""
     near = near_low | near_high
     return np.column_stack([near[:, [1, 2]].any(axis=1), near[:, [0, 2]].any(axis=1),
@@ -351,7 +355,7 @@ def _on_other_faces(near_low: np.ndarray, near_high: np.ndarray) -> np.ndarray:
 
 
 def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
-                 visible: np.ndarray, low: np.ndarray, high: np.ndarray,
+                 edge: np.ndarray, visible: np.ndarray, low: np.ndarray, high: np.ndarray,
                  tol: float) -> tuple[np.ndarray, np.ndarray]:
     """``low`` and ``high`` with each visible face's extreme replaced by its plane: the
     median of the points near it, then of those within ``tol`` of that (the first window,
@@ -359,9 +363,8 @@ def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     it left a grazing top face's far points out). Only the face's own points count where
     it has 8 of them: those near another face's plane too are mostly that face's, within
     ``tol`` of the edge and inside this plane, and a small face seen obliquely (a tumbling
-    box's) had its plane pulled 1-2 mm inward by them."""
+    box's) had its plane pulled 1-2 mm inward by them (``edge``: `on_other_faces`)."""
     low, high = low.copy(), high.copy()
-    edge = _on_other_faces(near_low, near_high)
     for k in range(3):
         for side, near, out in ((0, near_low, low), (1, near_high, high)):
             if visible[k, side]:

@@ -33,11 +33,10 @@ from damon_ros.perception.fit_kernels import near_planes
 from damon_ros.perception.tight_fit import (
     BOX_SHARE,
     FACE_SHARE,
-    MAX_YAW_ERROR_RAD,
-    YAW_ERROR_RAD,
-    YAW_NOISE_M,
     BoxFit,
     bound_in_frame,
+    frame_error,
+    on_other_faces,
 )
 from damon_ros.perception.tracker_config import TrackerConfig
 
@@ -73,7 +72,7 @@ def fit_tilted_box(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerCo
         return None
     lo, hi, seen, hidden, _ = bound
     half = 0.5 * (hi - lo)
-    error = _angle_error(hi - lo)
+    error = frame_error(float(np.sort(hi - lo)[1]))  # the narrowest face's wider side
     # a face turned by the error stands out of its fitted plane (through the middle of its
     # points) by the error times its corners' distance from there: at most the half-diagonal
     grow = error * np.sqrt([half[1] ** 2 + half[2] ** 2, half[0] ** 2 + half[2] ** 2,
@@ -83,13 +82,6 @@ def fit_tilted_box(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerCo
     shape = Shape("box", tuple(hi - lo), centre, Rotation.from_matrix(axes).as_quat(),
                   name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
-
-
-def _angle_error(extent: np.ndarray) -> float:
-    """The frame's remaining angle error: as an upright box's yaw (`tight_fit`), from the
-    depth noise over the narrowest face width."""
-    width = float(np.sort(extent)[1])  # the narrowest face's wider side
-    return min(max(YAW_ERROR_RAD, YAW_NOISE_M / max(width, 1e-3)), MAX_YAW_ERROR_RAD)
 
 
 def _frame(points: np.ndarray, tol: float) -> np.ndarray | None:
@@ -154,10 +146,9 @@ def _refined(points: np.ndarray, axes: np.ndarray, tol: float,
         local = np.ascontiguousarray(points @ axes)
         near_low, near_high = near_planes(local, tol)
         target = 1.0 * axes  # the previous frame, with a weight of one point per axis
+        edge = on_other_faces(near_low, near_high)
         for k in range(3):
-            others = [j for j in range(3) if j != k]
-            edge = (near_low[:, others] | near_high[:, others]).any(axis=1)
-            face = max((near_low[:, k] & ~edge, near_high[:, k] & ~edge),
+            face = max((near_low[:, k] & ~edge[:, k], near_high[:, k] & ~edge[:, k]),
                        key=np.count_nonzero)
             if np.count_nonzero(face) < 8:
                 continue

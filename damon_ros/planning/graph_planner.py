@@ -1249,9 +1249,9 @@ class GraphPlanner:
             # two-camera stress run: an arm on a last-resort escape, refused every move for
             # its brake, held and was hit); one that meets a static obstacle, nothing
             brake_free = _Query(self, q_now, q0, scene).segment_certified(q_now, q0, first=True)
-            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or not brake_free and not \
+            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or (not brake_free and not \
                     _Query(self, q_now, q0, scene.statics()).segment_certified(q_now, q0,
-                                                                                first=True):
+                                                                                first=True)):
                 return PlanResult(False, "no certified escape move found (braking from the "
                                   "current speed is not certified free)")
         ranking = (*scene.ahead, *self._predicted(scene))

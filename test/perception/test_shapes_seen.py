@@ -133,16 +133,23 @@ def test_a_yawed_box_gets_a_yawed_box_that_contains_it_and_is_tight(yaw_deg):
         assert np.linalg.norm(d.shape.position - truth.position) < 0.03
 
 
-@pytest.mark.parametrize("quaternion", [[0.3088, -0.6814, -0.6249, 0.2231],
-                                        [0.1, 0.35, -0.2, 0.909]])
+TUMBLED = [0.3088, -0.6814, -0.6249, 0.2231]
+"""A stress mover's orientation: no face upright."""
+
+
+def _turned_box(quaternion) -> dict:
+    """A small red box (a stress mover's size) in the given orientation (normalised)."""
+    q = np.asarray(quaternion, dtype=float) / np.linalg.norm(quaternion)
+    return {"name": "b", "shape": "box", "size": [0.064, 0.088, 0.077], "color": "red",
+            "pose": {"position": [0.5, 0.1, 0.4], "orientation": q.tolist()}}
+
+
+@pytest.mark.parametrize("quaternion", [TUMBLED, [0.1, 0.35, -0.2, 0.909]])
 def test_a_box_turned_about_a_horizontal_axis_gets_a_turned_box_that_contains_it(quaternion):
     """A tumbling mover fits no upright box; its faces give its frame (`tilted_box`). The
     blob bound it got before (its points pushed back by the blob prior) was 5-8 times its
     volume."""
-    q = np.asarray(quaternion) / np.linalg.norm(quaternion)
-    box = {"name": "b", "shape": "box", "size": [0.064, 0.088, 0.077], "color": "red",
-           "pose": {"position": [0.5, 0.1, 0.4], "orientation": q.tolist()}}
-    scenario = _scenario("A-001", box, drop=True)
+    scenario = _scenario("A-001", _turned_box(quaternion), drop=True)
     truth = scenario.obstacles[0].shape
     for seed in range(2):
         d = _one_detection(scenario, seed=seed)
@@ -399,6 +406,17 @@ def test_two_cameras_shrink_a_boxs_hidden_depth_and_still_contain_it():
     assert shapes.volume(two[0].shape) < shapes.volume(one[0].shape)
 
 
+SIDE = load_camera("camera_side.yaml")
+
+
+def _front_and_side(scenario, seed: int) -> tuple[list, object]:
+    """The front and side cameras' frames of ``scenario`` at 0 s (noise ``seed``) and the one
+    track their synchronised views give."""
+    rng = np.random.default_rng(seed)
+    frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (CAMERA, SIDE)]
+    (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, SIDE], frames, 0.0)
+    return frames, track
+
 def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
     """A yawed box seen from the front and from the side at one instant: one upright box is
     fitted to the union of both cameras' points (each face its plane, each silhouette the
@@ -410,16 +428,13 @@ def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
     box = {"name": "b", "shape": "box", "size": [0.09, 0.16, 0.2], "color": "red",
            "pose": {"position": [0.55, 0.05, 0.4],
                     "orientation": [0, 0, np.sin(half), np.cos(half)]}}
-    side = load_camera("camera_side.yaml")
     scenario = _scenario("A-001", box, drop=True)
     truth = scenario.obstacles[0].shape
     for seed in range(3):
-        rng = np.random.default_rng(seed)
-        frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (CAMERA, side)]
-        (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, side], frames, 0.0)
+        frames, track = _front_and_side(scenario, seed)
         assert track.shape.kind == "box"
         assert _inside(track.shape, [truth]) == 1.0
-        views = [detect(c, CONFIG, *f) for c, f in zip((CAMERA, side), frames, strict=True)]
+        views = [detect(c, CONFIG, *f) for c, f in zip((CAMERA, SIDE), frames, strict=True)]
         ((fused, _, _),) = fuse([[(d.shape, d.partial) for d in v] for v in views], 0.15,
                                 seen=[[d.surface for d in v] for v in views])
         assert shapes.volume(track.shape) < shapes.volume(fused)
@@ -431,16 +446,10 @@ def test_two_synchronised_cameras_fit_one_turned_box_to_all_they_saw():
     tracked as one box that contains it (fitted to both cameras' points: 1.44-1.46 times
     its volume here; the meet of the two cameras' own boxes was 1.46-1.56; each camera's
     blob bound before was several times it)."""
-    q = np.array([0.3088, -0.6814, -0.6249, 0.2231])
-    box = {"name": "b", "shape": "box", "size": [0.064, 0.088, 0.077], "color": "red",
-           "pose": {"position": [0.5, 0.1, 0.4], "orientation": (q / np.linalg.norm(q)).tolist()}}
-    side = load_camera("camera_side.yaml")
-    scenario = _scenario("A-001", box, drop=True)
+    scenario = _scenario("A-001", _turned_box(TUMBLED), drop=True)
     truth = scenario.obstacles[0].shape
     for seed in range(2):
-        rng = np.random.default_rng(seed)
-        frames = [render(c, scene_at(scenario, 0.0), 0.002, 0.01, rng) for c in (CAMERA, side)]
-        (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, side], frames, 0.0)
+        _, track = _front_and_side(scenario, seed)
         assert track.shape.kind == "box"
         assert _inside(track.shape, [truth]) == 1.0
         assert shapes.volume(track.shape) < 2.0 * shapes.volume(truth)

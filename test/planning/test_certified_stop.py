@@ -348,7 +348,6 @@ def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_move
     assert event is not None, "the last resort ran on into a static box"
 
 
-
 def test_a_brake_refused_only_for_a_movers_grown_region_still_leaves_the_last_resort(
         planner, fast, monkeypatch):
     """A moving arm whose brake is refused escaped nowhere: every escape starts with that
