@@ -29,7 +29,7 @@ _LOWER_BOUNDS: tuple[tuple[tuple[str, ...], str, Callable[[Any], bool]], ...] = 
       "gate_m", "max_age_s", "velocity_window_s", "time_jump_s", "face_tolerance_m",
       "static_hold_s", "moving_speed_mps", "moving_shift_m", "max_speed_mps"), "> 0",
      lambda v: not v > 0),
-    (("fusion_window_s",), ">= 0", lambda v: v < 0),
+    (("fusion_window_s", "refit_after_s"), ">= 0", lambda v: v < 0),
 )
 """``(fields, bound, violates)``: the numeric fields in the order they are checked, the bound
 named in the error, and the test of a value that breaks it."""
@@ -72,6 +72,7 @@ class TrackerConfig:
     moving_shift_m: float = 0.02
     fusion_window_s: float = 0.05
     max_speed_mps: float = 1.0
+    refit_after_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.colors:

@@ -33,6 +33,7 @@ from damon_ros.perception.joint_fit import joint_fit
 from damon_ros.perception.segmentation import Segmenter
 from damon_ros.perception.shape_fit import blob_points, estimate_shape
 from damon_ros.perception.stationarity import Stationarity
+from damon_ros.perception.still_blobs import StillBlobs
 from damon_ros.perception.tracker_config import TrackerConfig, load_tracker_config
 from damon_ros.perception.velocity import VelocityWindow
 
@@ -111,14 +112,22 @@ def _union(parts: Sequence[Shape | None], name: str) -> Shape | None:
 
 
 def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.ndarray,
-           segmenter: Segmenter | None = None, checked: bool = False) -> list[Detection]:
+           segmenter: Segmenter | None = None, checked: bool = False,
+           still: StillBlobs | None = None, stamp: float = 0.0) -> list[Detection]:
     """All obstacles of one frame (no tracking): segment, deproject, bound. ``checked``:
-    the caller ran `check_images` already (its all-zero test reads the whole depth image)."""
+    the caller ran `check_images` already (its all-zero test reads the whole depth image).
+    ``still``: this camera's fits of unmoved blobs, reused (:mod:`still_blobs`)."""
     if not checked:
         check_images(camera, rgb, depth)
     segmenter = Segmenter(config) if segmenter is None else segmenter
+    if still is not None:
+        still.start_frame(camera)
     found = []
     for blob in segmenter.blobs(rgb, depth):
+        kept = None if still is None else still.reuse(blob, stamp)
+        if kept is not None:
+            found.append(kept)
+            continue
         points = blob_points(camera, blob, config)
         if len(points) < config.min_points:
             continue
@@ -128,7 +137,24 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
                                len(points), blob.area_px, seen_part(surface, blob.color),
                                surface))
+        if still is not None:
+            still.remember(blob, found[-1], stamp)
+    if still is not None:
+        still.end_frame()
     return found
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    """Two fusion inputs ``(detections per view, slack, anchored, cameras)`` are the same
+    objects (identity: a kept detection is the very object of the frame it was fitted in)."""
+    (views_a, slack_a, anchored_a, cams_a), (views_b, slack_b, anchored_b, cams_b) = a, b
+    return (slack_a == slack_b and anchored_a == anchored_b and _identical(cams_a, cams_b)
+            and len(views_a) == len(views_b)
+            and all(_identical(x, y) for x, y in zip(views_a, views_b, strict=True)))
+
+
+def _identical(xs: Sequence, ys: Sequence) -> bool:
+    return len(xs) == len(ys) and all(x is y for x, y in zip(xs, ys, strict=True))
 
 
 # --- tracking --------------------------------------------------------------------------------
@@ -216,6 +242,8 @@ class Tracker:
         self._views: dict[int, tuple[float, list[Detection]]] = {}  # see `update_camera`
         self._cameras: dict[int, Camera] = {}  # the camera of each view
         self._at_last: set[int] = set()  # the views of the instant tracked last
+        self.still: dict[int, StillBlobs] = {}  # each view's unmoved fits (`still_blobs`)
+        self._fusion_memo: dict[str, tuple] = {}  # per colour, the last fusion (`_fused`)
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up, so an old id never means a new thing)."""
@@ -223,6 +251,13 @@ class Tracker:
         self._last_stamp = None
         self._views = {}
         self._at_last = set()
+        self.still = {}
+        self._fusion_memo = {}
+
+    def _still(self, view: int) -> StillBlobs:
+        if view not in self.still:
+            self.still[view] = StillBlobs(self.config.refit_after_s)
+        return self.still[view]
 
     @property
     def tracks(self) -> list[Track]:
@@ -245,7 +280,8 @@ class Tracker:
         stamp_s = float(stamp_s)
         check_images(self.camera, rgb, depth)
         self._check_stamp(stamp_s)
-        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter, True)
+        self.detections = detect(self.camera, self.config, rgb, depth, self.segmenter, True,
+                                 self._still(0), stamp_s)
         return self._track(stamp_s)
 
     def update_views(self, cameras: Sequence[Camera], frames: Sequence[tuple[np.ndarray,
@@ -258,8 +294,8 @@ class Tracker:
         for camera, (rgb, depth) in zip(cameras, frames, strict=True):
             check_images(camera, rgb, depth)
         self._check_stamp(stamp_s)
-        views = [detect(c, self.config, rgb, depth, self.segmenter, True)
-                 for c, (rgb, depth) in zip(cameras, frames, strict=True)]
+        views = [detect(c, self.config, rgb, depth, self.segmenter, True, self._still(v), stamp_s)
+                 for v, (c, (rgb, depth)) in enumerate(zip(cameras, frames, strict=True))]
         self.detections = self._fused(views, [0.0] * len(views), anchored=False,
                                       cameras=list(cameras))
         return self._track(stamp_s)
@@ -286,7 +322,8 @@ class Tracker:
         same_instant = older and stamp_s >= last - SAME_INSTANT_S and view not in self._at_last
         if not older:
             self._check_stamp(stamp_s)  # a clock jump resets the tracker and the views
-        found = detect(camera, self.config, rgb, depth, self.segmenter, True)
+        found = detect(camera, self.config, rgb, depth, self.segmenter, True, self._still(view),
+                       stamp_s)
         self._views[view] = (stamp_s, found)
         self._cameras[view] = camera
         if older and not same_instant:
@@ -310,8 +347,17 @@ class Tracker:
         if len(views) == 1:
             return list(views[0])
         out = []
+        memo, self._fusion_memo = self._fusion_memo, {}
         for color in sorted({d.color for view in views for d in view}):
             mine = [[d for d in view if d.color == color] for view in views]
+            key = (mine, list(slack), anchored, cameras)
+            if color in memo and _same(memo[color][0], key):
+                # every view's detections are the very ones fused last (`still_blobs`
+                # kept them), at the same slack: the fusion would repeat itself
+                self._fusion_memo[color] = memo[color]
+                out.extend(memo[color][1])
+                continue
+            first = len(out)
             per_view = [[(d.shape, d.partial) for d in view] for view in mine]
             seen = [[d.surface for d in view] for view in mine]
 
@@ -330,6 +376,7 @@ class Tracker:
                                      sum(d.area_px for d in parts),
                                      _union([d.seen for d in parts], color),
                                      np.vstack(surfaces) if surfaces else None))
+            self._fusion_memo[color] = (key, out[first:])
         return out
 
     def _track(self, stamp_s: float) -> list[Track]:

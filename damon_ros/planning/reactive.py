@@ -169,6 +169,7 @@ def _positions(shapes: Scene) -> dict:
 class RuntimeConfig:
     prediction_horizon_s: float = 0.3
     goal_tolerance_rad: float = 0.01
+    settled_speed_rad_s: float = 0.05  # "reached" needs the arm this slow as well as close
     retry_period_s: float = 0.1  # how often a holding arm looks for a route again
     escape_clearance_m: float = 0.05  # a holding arm moves away when an obstacle is closer
     stall_time_s: float = 1.5  # an arm that stopped short of the goal this long is re-planned
@@ -334,7 +335,7 @@ class ReactivePlanner:
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
                                  "controller may have stopped it); re-planning from here",
                                  qd_now)
-        if np.max(np.abs(q_now - self.path[-1])) <= self.config.goal_tolerance_rad:
+        if self._settled_at_end(q_now, qd_now):
             if np.max(np.abs(self.path[-1] - self.planner.goal_q)) > 1e-9:
                 self.state = "holding"  # an escape move ended
                 self.retries.reset()
@@ -479,6 +480,15 @@ class ReactivePlanner:
             return None
         return self._escape(q_now, shapes, "a mover's prediction reaches where the arm would "
                             "stop; ", qd_now)
+
+    def _settled_at_end(self, q_now: np.ndarray, qd_now: np.ndarray | None) -> bool:
+        """At the path's end and (where the velocity is known) nearly at rest. Close alone is
+        not enough: a controller that brakes the arm after "reached" (stale states under load)
+        left it at rest off the goal, and nothing re-plans from "reached"; still moving, it
+        stays "executing", where a stall is re-planned."""
+        if np.max(np.abs(q_now - self.path[-1])) > self.config.goal_tolerance_rad:
+            return False
+        return qd_now is None or bool(np.max(np.abs(qd_now)) <= self.config.settled_speed_rad_s)
 
     def _stalled(self, t: float, q_now: np.ndarray) -> bool:
         """No motion for ``stall_time_s`` while executing and away from the path's end."""

@@ -199,6 +199,26 @@ def test_a_holding_arm_in_a_movers_path_evades(planner, fast):
     assert first_contact(fast, times, states, [(ball, v)], 0.0, 0.02, Prediction(), AGE) is None
 
 
+def test_the_goal_is_reached_only_by_an_arm_at_rest_on_it(planner):
+    """Passing through the goal tolerance at speed is not "reached": a controller that then
+    brakes (stale joint states under load did) leaves the arm at rest off the goal, and the
+    stall rule re-plans from there; at rest on the goal, it is reached."""
+    q0, q1 = _long_move()
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
+    moving = np.full(7, 0.2)
+    assert runtime.update(9.0, q1 - 0.005, [], qd_now=moving) is None
+    assert runtime.state == "executing"
+    braked = q1 - 0.04  # where the brake left it
+    stall = runtime.config.stall_time_s
+    events = [runtime.update(9.1 + k * stall / 4, braked, [], qd_now=np.zeros(7))
+              for k in range(6)]
+    replans = [e for e in events if e is not None]
+    assert len(replans) == 1 and replans[0].kind == "trajectory", events
+    assert "stopped short of the goal" in replans[0].reason
+    assert runtime.update(20.0, q1, [], qd_now=np.zeros(7)).kind == "reached"
+
+
 def test_an_arm_resting_on_its_goal_gets_out_of_a_movers_way_and_returns(planner, fast):
     """The goal reached, a ball comes at the hand: the arm at its goal evades like a
     holding one (a sphere diving onto an arm at rest on its goal touched it in generated
