@@ -359,11 +359,19 @@ class TrackerNode(Node):
         dropped = sum(v.sync.dropped for v in self.views)
         late = f", {self.late_frames} late frames fused only" if len(self.views) > 1 else ""
         self.get_logger().info(f"{fps:.1f} frames/s tracked; {self.stats.summary()}; "
-                               f"{dropped} unpaired frames dropped so far{late}")
+                               f"{dropped} unpaired frames dropped so far{late}; "
+                               f"{self._kept_fits()}")
+
+    def _kept_fits(self) -> str:
+        """How many blobs kept their fit (`still_blobs`): a still scene should be most."""
+        kept = sum(s.reused for s in self.tracker.still.values())
+        fitted = sum(s.fitted for s in self.tracker.still.values())
+        return f"{kept} of {kept + fitted} blobs kept an unmoved fit"
 
     def on_shutdown(self) -> None:
         """Called by `run_single_threaded`: the run's statistics in one line."""
-        self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}")
+        self.get_logger().info(f"{self.stats.frames} frames tracked; {self.stats.summary()}; "
+                               f"{self._kept_fits()}")
 
 
 CONFIG_FILE = "config/tracker_node.yaml"
