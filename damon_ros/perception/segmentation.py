@@ -36,6 +36,9 @@ class Blob(NamedTuple):
     edge: np.ndarray | None = None
     """Per pixel: on the blob's outline. Thinning keeps these, because a shape's extent is
     set by its outline and a bound is only as tight as the outline is sampled."""
+    occluders: np.ndarray | None = None
+    """(K, 2) full-resolution ``(u, v)`` of the pixels next to the blob that belong to a
+    nearer surface or another object (`_occluders`): where its silhouette may be cut."""
 
 
 def _kernel(size: int) -> np.ndarray | None:
@@ -51,8 +54,10 @@ SEAM_MM = 10
 depth noise) may belong to an object that meets it there and hides part of it."""
 
 
-def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
-    """Whether a nearer surface borders the blob, so part of the obstacle may be hidden.
+def _occluders(inside: np.ndarray, depth: np.ndarray, other: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the pixels next to the blob where a nearer surface borders it,
+    so part of the obstacle may be hidden there.
 
     ``inside``, ``depth`` and ``other`` (pixels of the other colour classes) cover the blob's
     bounding box grown by one pixel. Another object's pixels that are not clearly behind
@@ -65,7 +70,9 @@ def _occluded(inside: np.ndarray, depth: np.ndarray, other: np.ndarray) -> bool:
     ring = cv2.dilate(inside.view(np.uint8), _RING).astype(bool) & ~inside
     d = depth[ring].astype(np.int32)
     near = neighbour[ring] + np.where(other[ring], SEAM_MM, -OCCLUSION_MARGIN_MM)
-    return bool(np.any((d > 0) & (d < near)))
+    rows, cols = np.nonzero(ring)
+    hit = (d > 0) & (d < near)
+    return rows[hit], cols[hit]
 
 
 @njit(cache=True)
@@ -209,14 +216,17 @@ class Segmenter:
             rows, cols = np.nonzero(valid)
             outline = valid & ~cv2.erode(valid.view(np.uint8), _RING,
                                          borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+            occ_rows, occ_cols = _occluders(inside, d,
+                                            other[y0 + wy0:y0 + wy1, x0 + wx0:x0 + wx1])
             blobs.append(Blob(
                 color=color,
                 u=(cols + x0 + wx0) * self.step,
                 v=(rows + y0 + wy0) * self.step,
                 depth_mm=d[rows, cols],
                 area_px=area * self.step**2,
-                partial=at_border or _occluded(
-                    inside, d, other[y0 + wy0:y0 + wy1, x0 + wx0:x0 + wx1]),
+                partial=at_border or occ_rows.size > 0,
                 edge=outline[rows, cols],
+                occluders=np.column_stack([(occ_cols + x0 + wx0) * self.step,
+                                           (occ_rows + y0 + wy0) * self.step]),
             ))
         return blobs

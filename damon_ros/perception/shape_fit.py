@@ -154,7 +154,8 @@ def _reach(local: np.ndarray, centre: np.ndarray) -> float:
 
 
 def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
-                   name: str = "", partial: bool = False) -> Estimate:
+                   name: str = "", partial: bool = False,
+                   occluders: np.ndarray | None = None) -> Estimate:
     """Conservative bounding shape (base frame) of an obstacle seen as optical-frame points.
 
     Round blobs: the fitted sphere, radius ``max(fit, farthest point) + inflation`` (``auto``:
@@ -176,9 +177,17 @@ def estimate_shape(camera: Camera, points: np.ndarray, config: TrackerConfig,
         if config.shape == "box":
             return Estimate(Shape("box", (2 * radius,) * 3, centre, name=name), True)
         return Estimate(Shape("sphere", (radius,), centre, name=name), True)
-    if config.shape == "auto" and not partial:
-        # What is fully in view gets a tight shape (tight_fit); a cut-off blob keeps the
-        # view-extended bound below, which does not rely on having seen the silhouette.
+    if config.shape == "auto" and partial and occluders is not None:
+        # A cut-off box: its seen faces bound it, and where only the cut silhouette could,
+        # the class prior beyond the last point seen (not the view-extended bound below,
+        # whose depth is the largest visible width: boxes touching another object in a
+        # generated E scene were 10 times their volume, and swallowed goals beside them)
+        box = fit_box(camera, points @ R.T + t, config, name, True, occluders)
+        if box is not None:
+            return Estimate(box.shape, False)
+    elif config.shape == "auto" and not partial:
+        # What is fully in view gets a tight shape (tight_fit); a cut-off blob that is no
+        # box keeps the view-extended bound below, which does not rely on its silhouette.
         base = points @ R.T + t
         box = fit_box(camera, base, config, name)
         if box is not None:

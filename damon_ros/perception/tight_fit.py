@@ -36,7 +36,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
-from damon_ros.perception.camera import Camera
+from damon_ros.perception.camera import Camera, project
 from damon_ros.perception.fit_kernels import (
     circle_refine,
     face_counts,
@@ -63,6 +63,13 @@ MAX_FACE_TILT_RAD = 0.05
 upright box (several times what depth noise leaves on a face of a few dozen points)."""
 MIN_FACING = 0.1
 """A face counts as seen only when the camera is at least this sine of an angle off its plane."""
+CUT_END_BAND_M = 0.01
+"""A cut view's points this close to an end of the box (along its axis, beyond the depth
+noise) are its last points there, which must lie away from what may hide it."""
+CUT_REACH_STEPS = 3
+"""... more than this many segmentation steps (pixels at full resolution: 6 at the shipped
+downsample of 2) from an occluding pixel or the image border: the outline and the ring of
+occluding pixels are a step or two apart where they meet."""
 EDGE_SAMPLES = math.sqrt(2.0)
 """A silhouette edge lies within this many sample spacings (the diagonal of the sampling
 grid) beyond the last sample that saw the surface, on the image plane."""
@@ -101,18 +108,29 @@ def spacing_m(camera: Camera, config: TrackerConfig, depth: float) -> float:
 
 
 def fit_box(camera: Camera, points: np.ndarray, config: TrackerConfig,
-            name: str = "") -> BoxFit | None:
-    """The upright box of base-frame ``points`` (N x 3), or None when they are no box."""
-    return fit_box_seen([(camera, points)], config, name)
+            name: str = "", partial: bool = False,
+            occluders: np.ndarray | None = None) -> BoxFit | None:
+    """The upright box of base-frame ``points`` (N x 3), or None when they are no box.
+    ``partial``, ``occluders``: the view is flagged partial and where it may be cut
+    (`fit_box_seen`'s ``cut`` and ``occluders``)."""
+    return fit_box_seen([(camera, points)], config, name, [partial],
+                        None if occluders is None else [occluders])
 
 
 def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConfig,
-                 name: str = "", cut: Sequence[bool] | None = None) -> BoxFit | None:
+                 name: str = "", cut: Sequence[bool] | None = None,
+                 occluders: Sequence[np.ndarray] | None = None) -> BoxFit | None:
     """The upright box of the base-frame points several cameras saw of one object at one
     instant (``views``: each camera and its points), or None when they are no box. A face
     is visible when it has points and some camera faces it; each point's ray is its own
     camera's. ``cut[v]``: view ``v`` is flagged partial (an occluder or the image border
-    may cut its silhouette): its points and faces count, its silhouette bounds nothing."""
+    may cut its silhouette): its points and faces count, its silhouette bounds nothing, and
+    an end that only such views could bound makes the points no box. With ``occluders[v]``
+    (view ``v``'s occluding pixels, `segmentation.Blob.occluders`) a cut view's silhouette
+    bounds each end whose last points lie away from them and from the image border (a
+    convex object's hidden part reaches beyond its last visible point only next to what
+    hides it), and an end no silhouette bounds then lies at most the class prior
+    (``max_thickness_m.box``) beyond the last point seen there."""
     cut = [False] * len(views) if cut is None else list(cut)
     points = np.vstack([p for _, p in views])
     if len(points) < config.min_points:
@@ -130,7 +148,7 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
         on_face = (near_low | near_high).any(axis=1)
         if on_face.mean() < BOX_SHARE:
             return None
-    bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config)
+    bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config, occluders)
     if bound is None:
         return None
     lo, hi, seen, hidden, ends_by = bound
@@ -148,13 +166,14 @@ def frame_error(width: float) -> float:
 
 def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[bool],
                    axes: np.ndarray, local: np.ndarray, near_low: np.ndarray,
-                   near_high: np.ndarray, config: TrackerConfig) -> tuple | None:
+                   near_high: np.ndarray, config: TrackerConfig,
+                   occluders: Sequence[np.ndarray] | None = None) -> tuple | None:
     """The box bound of the views' points in a box frame (``axes``: its axes as columns,
     ``local`` the points in it, ``near_low`` / ``near_high`` which lie near its robust
     planes), before the frame's own error is allowed for: ``(lo, hi, seen, hidden,
     ends_by)``, each axis bounded by a visible face's plane, a silhouette or the class
     prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which, for
-    `_skewed`), or None when the faces do not make a box."""
+    `_skewed`), or None when the faces do not make a box. ``occluders``: `fit_box_seen`."""
     tol = config.face_tolerance_m
     low, high = local.min(axis=0), local.max(axis=0)
     need = max(8, int(FACE_SHARE * len(local)))
@@ -162,7 +181,8 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     # MIN_FACING: an edge-on face's "points" are the rim of another face) and has points
     owner = np.repeat(np.arange(len(views)), [len(p) for _, p in views])
     per_view = [_BoxView(camera, axes, owner == v, local, near_low, near_high, low, high,
-                         config, not cut[v]) for v, (camera, _) in enumerate(views)]
+                         config, not cut[v], None if occluders is None else occluders[v])
+                for v, (camera, _) in enumerate(views)]
     # (its own points: those near another face's plane too are mostly that face's rim,
     # and a face seen edge-on by every camera had only those)
     edge = on_other_faces(near_low, near_high)
@@ -171,6 +191,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     if not visible.any() or _tilted(local, near_low, near_high, visible):
         return None
     margin_face = config.surface_margin_m
+    prior = config.max_thickness_m["box"]
     seen, hidden = [], []
     # how each end of each horizontal axis is bounded (`_skewed`): "face", "corner", "prior"
     ends_by = [["prior", "prior"] for _ in range(2)]
@@ -189,18 +210,23 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
             # (several cameras: each one's silhouette bounds the object, the tightest holds)
             ends = [_silhouette(per_view, local[:, k], k, sign, others)
                     if not visible[k, side] else None for side, sign in ((0, -1), (1, 1))]
-            if any(e is not None and not math.isfinite(e[0]) for e in ends):
-                return None  # only cut views show that silhouette
+            # only cut views show that silhouette: an occluder or the image border may hide
+            # the rest, which the class prior bounds beyond the last point seen there
+            cut_ends = [e is not None and not math.isfinite(e[0]) for e in ends]
+            if any(cut_ends) and occluders is None:
+                return None
+            ends = [(low[k] - prior, False) if cut and sign < 0 else
+                    (high[k] + prior, False) if cut else e
+                    for e, cut, sign in zip(ends, cut_ends, (-1, 1), strict=True)]
             lo[k] = lo[k] - margin_face if ends[0] is None else ends[0][0] - margin_face
             hi[k] = hi[k] + margin_face if ends[1] is None else ends[1][0] + margin_face
             if k < 2:
                 ends_by[k] = ["face" if e is None else "corner" if e[1] else "prior"
                               for e in ends]
-            seen.append(True)
-            hidden.append(0.0)
+            seen.append(not any(cut_ends))
+            hidden.append(prior * sum(cut_ends))
             continue
         # Only a face across this axis is seen: its depth is the prior's.
-        prior = config.max_thickness_m["box"]
         if visible[k, 0]:
             lo[k] -= margin_face
             extra = max(0.0, low[k] + prior - high[k])
@@ -301,20 +327,43 @@ class _BoxView:
 
     def __init__(self, camera: Camera, axes: np.ndarray, mask: np.ndarray, local: np.ndarray,
                  near_low: np.ndarray, near_high: np.ndarray, low: np.ndarray,
-                 high: np.ndarray, config: TrackerConfig, whole: bool = True) -> None:
+                 high: np.ndarray, config: TrackerConfig, whole: bool = True,
+                 occluders: np.ndarray | None = None) -> None:
         self.mask, self.whole = mask, whole
+        self.camera, self.occluders = camera, occluders
+        self.reach_px = CUT_REACH_STEPS * config.downsample
         eye = camera.position @ axes
         reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
         self.facing = np.column_stack([eye < low - reach, eye > high + reach])
         need = max(8, int(FACE_SHARE * np.count_nonzero(mask)))
         self.visible = self.facing & np.column_stack(
             [near_low[mask].sum(axis=0) >= need, near_high[mask].sum(axis=0) >= need])
-        points = local[mask] @ axes.T
+        points = self.points = local[mask] @ axes.T
         self.delta = spacing_m(camera, config, float(np.max((points - camera.position)
                                                             @ camera.rotation[:, 2])))
         rays = points - camera.position
         rays /= np.sqrt((rays * rays).sum(axis=1))[:, None]
         self.cosines = np.abs(rays @ axes)
+
+    def bounds_end(self, along: np.ndarray, sign: int) -> bool:
+        """Whether this view's silhouette bounds the ``sign`` end of the axis whose
+        coordinates of the view's points are ``along``: a whole view's does; a cut one's
+        where its points within `CUT_END_BAND_M` of that end lie more than ``reach_px``
+        from every occluding pixel and from the image border."""
+        if self.whole:
+            return True
+        if self.occluders is None:
+            return False
+        end = sign * along >= np.max(sign * along) - CUT_END_BAND_M
+        uv = project(self.camera, (self.points[end]))
+        r, cam = self.reach_px, self.camera
+        if np.any(~np.isfinite(uv)) or np.any(uv < r) or np.any(
+                uv[:, 0] > cam.width - 1 - r) or np.any(uv[:, 1] > cam.height - 1 - r):
+            return False
+        if not len(self.occluders):
+            return True
+        gap = np.abs(uv[:, None, :] - self.occluders[None, :, :]).max(axis=2)
+        return bool(gap.min() > r)
 
 
 def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
@@ -329,7 +378,7 @@ def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
     bounds = []
     for w in views:
         spans = [j for j in range(3) if j != k and w.visible[j].any()]
-        if spans and w.whole and np.any(w.mask):
+        if spans and np.any(w.mask) and w.bounds_end(along[w.mask], sign):
             mine = along[w.mask]
             bounds.append((float(np.max(sign * mine))
                            + _edge(w.cosines, mine, spans, w.delta, sign),

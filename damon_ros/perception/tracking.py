@@ -132,7 +132,7 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         if len(points) < config.min_points:
             continue
         estimate = estimate_shape(camera, points, config, name=blob.color,
-                                  partial=blob.partial)
+                                  partial=blob.partial, occluders=blob.occluders)
         surface = to_base_frame(camera, points)
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
                                len(points), blob.area_px, seen_part(surface, blob.color),

@@ -9,8 +9,9 @@ volume / true volume - 1), the centre error (estimate centre vs the centre of th
 object's enclosing box), the velocity error, and the tracker's CPU time per frame (one
 process and one BLAS thread as in the node, offline; CPU rather than wall time so that a
 loaded machine does not inflate it).
-Frames whose detection is flagged partial (cut off or occluded) are counted apart: their
-bound covers only what is seen. ``--out`` writes every row as JSON lines for
+Frames whose detection is flagged partial (cut off or occluded) are counted apart ("cut
+contained"): the parts an occluder or the image border may hide are bounded by the class
+prior there, which the true object need not keep to. ``--out`` writes every row as JSON lines for
 ``damon-ros report --tracker``.
 """
 
@@ -130,6 +131,9 @@ def summarise(rows: list[dict]) -> tuple[list[dict], list[dict]]:
             "partial": len(seen) - len(full),
             "contained_pct": 100 * float(np.mean([r["contained"] for r in full]))
             if full else float("nan"),
+            "partial_contained_pct": 100 * float(np.mean([r["contained"] for r in seen
+                                                          if r["partial"]]))
+            if len(seen) > len(full) else float("nan"),
             "excess_pct": 100 * p("excess", 50), "centre_p50_mm": p("centre_m", 50, 1e3),
             "centre_p95_mm": p("centre_m", 95, 1e3), "velocity_p50": p("velocity_mps", 50),
             "estimates": ",".join(f"{k}:{n}" for k, n in sorted(kinds.items()))})
@@ -143,13 +147,14 @@ def summarise(rows: list[dict]) -> tuple[list[dict], list[dict]]:
 def table(rows: list[dict]) -> str:
     groups, times = summarise(rows)
     header = (f"{'kind':<9} {'motion':<7} {'cams':>5} {'frames':>6} {'seen':>6} {'partial':>7} "
-              f"{'contained':>9} {'excess p50':>10} {'centre p50 mm':>13} "
+              f"{'contained':>9} {'cut contained':>13} {'excess p50':>10} {'centre p50 mm':>13} "
               f"{'centre p95 mm':>13} {'vel p50 m/s':>11} {'estimates':<22}")
     lines = [header, "-" * len(header)]
     for g in groups:
         lines.append(
             f"{g['kind']:<9} {g['motion']:<7} {g['set']}:{g['cams']:<3} {g['frames']:>6} "
             f"{g['seen']:>6} {g['partial']:>7} {g['contained_pct']:>8.2f}% "
+            f"{g['partial_contained_pct']:>12.2f}% "
             f"{g['excess_pct']:>9.0f}% {g['centre_p50_mm']:>13.1f} {g['centre_p95_mm']:>13.1f} "
             f"{g['velocity_p50']:>11.3f} {g['estimates']:<22}")
     lines.append("")

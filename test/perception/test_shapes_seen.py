@@ -18,6 +18,8 @@ from damon_ros.core.resources import public_scenarios_dir
 from damon_ros.core.scenario import ScenarioError, parse_scenario
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import load_camera
+from damon_ros.perception.segmentation import Segmenter
+from damon_ros.perception.shape_fit import blob_points, estimate_shape
 from damon_ros.perception.tracker_config import load_tracker_config
 from damon_ros.perception.tracking import Tracker, detect
 from damon_ros.simulation.renderer import render, scene_at
@@ -131,6 +133,43 @@ def test_a_yawed_box_gets_a_yawed_box_that_contains_it_and_is_tight(yaw_deg):
         # there beyond the last one (~2 cm here): 1.54-1.60 with the mean ray's, 1.59-1.64
         assert shapes.volume(d.shape) < 1.7 * shapes.volume(truth)
         assert np.linalg.norm(d.shape.position - truth.position) < 0.03
+
+
+def _upright(name: str, size, position, yaw: float, color: str) -> dict:
+    return {"name": name, "shape": "box", "size": list(size), "color": color,
+            "pose": {"position": list(position),
+                     "orientation": [0, 0, float(np.sin(yaw / 2)), float(np.cos(yaw / 2))]}}
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_box_partly_hidden_by_the_box_it_touches_is_bounded_by_its_faces_and_the_prior(seed):
+    """Two boxes side by side (a generated E scene): each borders the other, so each view is
+    flagged partial. Its faces and the silhouette ends away from the other box still bound
+    it; only the ends next to what may hide it get the class prior. Contained, and a
+    fraction of the view-extended bound that every cut-off blob got before (10 times the
+    box's volume in that scene, which swallowed the goal beside it)."""
+    red = _upright("red", (0.0855, 0.1928, 0.2907), (0.6468, -0.1013, 0.3352), 0.32, "red")
+    yellow = _upright("yellow", (0.0926, 0.1573, 0.2978), (0.6304, 0.0799, 0.1261), -0.31,
+                      "yellow")
+    scenario = _scenario("A-001", red, yellow, drop=True)
+    rgb, depth = render(CAMERA, scene_at(scenario, 0.0), 0.002, 0.01,
+                        np.random.default_rng(seed))
+    prior = CONFIG.max_thickness_m["box"]
+    truths = {o.color: o.shape for o in scenario.obstacles}
+    blobs = Segmenter(CONFIG).blobs(rgb, depth)
+    assert sorted(b.color for b in blobs) == ["red", "yellow"]
+    for blob in blobs:
+        truth, points = truths[blob.color], blob_points(CAMERA, blob, CONFIG)
+        assert blob.partial and len(blob.occluders)
+        bound = estimate_shape(CAMERA, points, CONFIG, blob.color, True, blob.occluders).shape
+        extended = estimate_shape(CAMERA, points, CONFIG, blob.color, True).shape
+        assert bound.kind == "box" and _inside(bound, [truth]) == 1.0
+        # no more than one prior on an axis, and not on every axis
+        grown = np.sort(np.array(bound.size)) - np.sort(truth.size)
+        assert np.all(grown < prior + 0.03) and np.any(grown < 0.03), grown
+        assert shapes.volume(bound) < 0.6 * shapes.volume(extended)
+        if blob.color == "red":  # one end only is next to the other box
+            assert shapes.volume(bound) < 4.0 * shapes.volume(truth)
 
 
 TUMBLED = [0.3088, -0.6814, -0.6249, 0.2231]

@@ -146,7 +146,7 @@ def test_bench_tracker_compares_camera_sets_and_refuses_a_bad_camera_list(tmp_pa
             if line.startswith("box ")]
     assert [r[2] for r in rows] == ["1:1", "2:2"]  # set number: cameras, one row per set
     assert all(r[6] == "100.00%" for r in rows)  # the estimate contains the box
-    assert int(rows[1][7].rstrip("%")) < int(rows[0][7].rstrip("%"))  # less volume excess
+    assert int(rows[1][8].rstrip("%")) < int(rows[0][8].rstrip("%"))  # less volume excess
     assert bench_tracker(["--scenarios", scenario, "--cameras", "camera.yaml,nowhere.yaml"]) == 2
     assert "nowhere.yaml" in capsys.readouterr().err
     assert bench(["--scenarios", scenario, "--perception", "camera", "--cameras", "x,",
