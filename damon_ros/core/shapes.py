@@ -112,6 +112,26 @@ def compose(position: np.ndarray, orientation: np.ndarray, part: Shape, name: st
     return Shape(part.kind, part.size, position, q, part.points, name or part.name)
 
 
+def grown(shape: Shape, grow) -> Shape:
+    """A sphere, box or cylinder grown by ``grow`` (m) as the same kind of shape: a box
+    face by face (six values: +x, +y, +z, -x, -y, -z, as `fusion.halfspaces` orders its
+    faces; one value: all), the others by the largest value."""
+    grow = np.maximum(np.atleast_1d(np.asarray(grow, dtype=float)), 0.0)
+    if shape.kind == "box" and grow.size == 1:
+        grow = np.full(6, grow[0])
+    size = np.asarray(shape.size, dtype=float)
+    position = np.asarray(shape.position, dtype=float)
+    if shape.kind == "box":  # rows: +x, +y, +z, -x, -y, -z faces (`halfspaces`)
+        high, low = grow[:3], grow[3:6]
+        size = size + high + low
+        position = position + shape.rotation() @ (0.5 * (high - low))
+    elif shape.kind == "cylinder":
+        size = size + np.array([grow.max(), 2.0 * grow.max()])
+    else:
+        size = size + grow.max()
+    return Shape(shape.kind, tuple(size), position, shape.orientation, name=shape.name)
+
+
 def enclosing_vertices(shape: Shape, sides: int = 12) -> np.ndarray:
     """Base-frame vertices whose convex hull contains ``shape``.
 

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
-from damon_ros.core.shapes import Shape, enclosing_vertices, volume
+from damon_ros.core.shapes import Shape, enclosing_vertices, grown, volume
 
 _DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
                         if (x, y, z) != (0, 0, 0)], dtype=float)
@@ -213,25 +213,6 @@ def fuse(views: list[list[tuple[Shape, bool]]], gate_m: float,
     return out
 
 
-def _grown(shape: Shape, grow) -> Shape:
-    """A sphere, box or cylinder grown as `_moved_out` grows its half-spaces, as the same
-    kind of shape: a box face by face, the others by the largest value."""
-    grow = np.maximum(np.atleast_1d(np.asarray(grow, dtype=float)), 0.0)
-    if shape.kind == "box" and grow.size == 1:
-        grow = np.full(6, grow[0])
-    size = np.asarray(shape.size, dtype=float)
-    position = np.asarray(shape.position, dtype=float)
-    if shape.kind == "box":  # rows: +x, +y, +z, -x, -y, -z faces (`halfspaces`)
-        high, low = grow[:3], grow[3:6]
-        size = size + high + low
-        position = position + shape.rotation() @ (0.5 * (high - low))
-    elif shape.kind == "cylinder":
-        size = size + np.array([grow.max(), 2.0 * grow.max()])
-    else:
-        size = size + grow.max()
-    return Shape(shape.kind, tuple(size), position, shape.orientation, name=shape.name)
-
-
 def _consistent(group: list[tuple[Shape, bool, float]], surfaces: list[np.ndarray | None],
                 tolerance_m: float, planes=halfspaces) -> list[tuple[Shape, bool, float]]:
     """The group's views whose bounds hold what the others saw (`fuse`), each grown by the
@@ -302,8 +283,8 @@ def _fused(group: list[tuple[Shape, bool, float]], pair: Shape | None = None,
         # must be clearly smaller to be kept
         # alone, a view's bound is as good as with one camera: grown for motion only
         motion = motion or {}
-        alone = [_grown(s, motion.get(id(s), g)) for s, g in members if s.kind != "points"]
-        meet = _box_meet([_grown(s, g) for s, g in members if s.kind == "box"])
+        alone = [grown(s, motion.get(id(s), g)) for s, g in members if s.kind != "points"]
+        meet = _box_meet([grown(s, g) for s, g in members if s.kind == "box"])
         if meet is not None:  # several boxes: one box holds their intersection
             alone.append(meet)
         if alone:

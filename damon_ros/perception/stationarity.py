@@ -30,7 +30,7 @@ from collections import deque
 
 import numpy as np
 
-from damon_ros.core.shapes import Shape, contains
+from damon_ros.core.shapes import Shape, contains, grown
 from damon_ros.perception.tracker_config import TrackerConfig
 
 SHRUNK_SHARE = 0.8
@@ -73,6 +73,18 @@ class Stationarity:
         shift = self.config.moving_shift_m
         return bool(np.all(contains(self.whole, surface, shift))
                     and not np.any(contains(self.whole, surface, -shift)))
+
+    def held_bound(self, cut_bound: Shape) -> Shape:
+        """The bound of an object in place that an occluder cut (`cut_in_place` was True):
+        its last whole bound grown by ``moving_shift_m`` (its visible surface lies within
+        that of the whole bound's), where that is a sphere, box or cylinder; else
+        ``cut_bound``, the cut view's own. That bounds only what the view shows: a pole cut
+        in two by a passing ball was half outside it, and a cut-off pole's view-extended box
+        reached 9 cm toward the arm, which then held between it and the ball."""
+        whole = self.whole
+        if whole is None or whole.kind not in ("sphere", "box", "cylinder"):
+            return cut_bound
+        return grown(whole, self.config.moving_shift_m)
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """Take one observation; the velocity to report (zero while still)."""

@@ -208,7 +208,8 @@ class _TrackState:
         With a single centre in the window (a new track, or one unseen for longer than the
         window) the previous velocity is kept; so it is when the view is only what an
         occluder left visible of the object in place (`Stationarity.cut_in_place`): its
-        centre is no evidence of motion.
+        centre is no evidence of motion, and its shape is the last whole one, grown a little
+        (`Stationarity.held_bound`).
         """
         shape = detection.shape
         self.shape = shape
@@ -218,6 +219,7 @@ class _TrackState:
         self.hits += 1
         if self.stillness.cut_in_place(shape, detection.partial, detection.area_px,
                                        detection.surface):
+            self.shape = self.stillness.held_bound(shape)
             return
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:

@@ -351,6 +351,39 @@ def test_a_still_box_partly_hidden_by_a_passing_ball_keeps_zero_velocity():
     assert all(speed == 0.0 for speed, _ in after.values())
 
 
+def test_a_still_pole_partly_hidden_by_a_passing_ball_keeps_its_whole_bound():
+    """A ball diving past a still pole hides part of it (generated G scene): the cut view's
+    own bound was the view-extended box, which reached 9 cm toward the arm, and the arm
+    held between that and the ball, which hit it. What an occluder left of an object in
+    place now keeps the last whole bound, grown by ``moving_shift_m``: it contains the
+    pole and is the same size in every hidden frame."""
+    half = -0.3957 / 2
+    pole = {"name": "pole", "shape": "cylinder", "size": [0.0435, 0.21], "color": "blue",
+            "pose": {"position": [0.5392, -0.0085, 0.4111],
+                     "orientation": [float(np.sin(half)), 0.0, 0.0, float(np.cos(half))]}}
+    ball = {"name": "ball", "shape": "sphere", "size": [0.0528], "color": "yellow",
+            "pose": {"position": [0.70, 0.20, 0.55], "orientation": [0, 0, 0, 1]},
+            "motion": {"type": "waypoints", "waypoints": [[0.0, 0.70, 0.20, 0.55],
+                                                          [0.8, 0.70, 0.20, 0.55],
+                                                          [2.6, 0.70, -0.25, 0.30]]}}
+    scenario = _scenario("A-001", pole, ball, drop=True)
+    truth = scenario.obstacles[0].shape
+    tracker = Tracker(CAMERA, CONFIG)
+    rng = np.random.default_rng(7)
+    cut = []
+    for t in np.arange(0.0, 2.6, 1 / 30):
+        rgb, depth = render(CAMERA, scene_at(scenario, t), 0.002, 0.01, rng)
+        # (the ball may cut it in two: the lower piece opens a track of its own)
+        blue = min((tr for tr in tracker.update(rgb, depth, t) if tr.color == "blue"),
+                   key=lambda tr: tr.id)
+        if blue.partial:
+            cut.append(blue.shape)
+    assert len(cut) >= 5  # the ball did hide part of it
+    for shape in cut:
+        assert shape.kind == "cylinder" and _inside(shape, [truth]) == 1.0
+        assert shapes.volume(shape) < 4.0 * shapes.volume(truth)  # 2 cm on a 4 cm pole
+
+
 def test_a_box_moving_off_while_partly_hidden_is_seen_to_move_within_a_few_frames():
     """The same ball rests in front of the box's left side; the box, still until 1.5 s,
     then moves right at 0.3 m/s: leaving its last whole bound is evidence of motion even
