@@ -348,8 +348,11 @@ class _BoxView:
     def bounds_end(self, along: np.ndarray, sign: int) -> bool:
         """Whether this view's silhouette bounds the ``sign`` end of the axis whose
         coordinates of the view's points are ``along``: a whole view's does; a cut one's
-        where its points within `CUT_END_BAND_M` of that end lie more than ``reach_px``
-        from every occluding pixel and from the image border."""
+        where one of its points within `CUT_END_BAND_M` of that end lies more than
+        ``reach_px`` from every occluding pixel and from the image border. That end of a
+        box is a face's plane: one of its edge's points in plain view places it. (Where the
+        whole edge is hidden, the last points seen are those next to what hides it, and so
+        are all within the band, a few pixels, of them.)"""
         if self.whole:
             return True
         if self.occluders is None:
@@ -357,13 +360,12 @@ class _BoxView:
         end = sign * along >= np.max(sign * along) - CUT_END_BAND_M
         uv = project(self.camera, (self.points[end]))
         r, cam = self.reach_px, self.camera
-        if np.any(~np.isfinite(uv)) or np.any(uv < r) or np.any(
-                uv[:, 0] > cam.width - 1 - r) or np.any(uv[:, 1] > cam.height - 1 - r):
-            return False
-        if not len(self.occluders):
-            return True
-        gap = np.abs(uv[:, None, :] - self.occluders[None, :, :]).max(axis=2)
-        return bool(gap.min() > r)
+        clear = np.isfinite(uv).all(axis=1) & np.all(uv >= r, axis=1) & (
+            uv[:, 0] <= cam.width - 1 - r) & (uv[:, 1] <= cam.height - 1 - r)
+        if len(self.occluders) and clear.any():
+            gap = np.abs(uv[clear][:, None, :] - self.occluders[None, :, :]).max(axis=2)
+            clear[clear] = gap.min(axis=1) > r
+        return bool(clear.any())
 
 
 def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
