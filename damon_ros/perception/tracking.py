@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from damon_ros.core.hull import MAX_HULL_VERTICES, few_vertices
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
@@ -157,6 +158,15 @@ def _identical(xs: Sequence, ys: Sequence) -> bool:
     return len(xs) == len(ys) and all(x is y for x, y in zip(xs, ys, strict=True))
 
 
+def _few_vertices(shape: Shape) -> Shape:
+    """A point-set bound with at most `hull.MAX_HULL_VERTICES` vertices that contains
+    ``shape`` (`hull.few_vertices`); any other shape as it is."""
+    if shape.kind != "points" or len(shape.points) <= MAX_HULL_VERTICES:
+        return shape
+    return Shape("points", (), shape.position, shape.orientation,
+                 points=few_vertices(shape.points), name=shape.name)
+
+
 # --- tracking --------------------------------------------------------------------------------
 
 SAME_INSTANT_S = 1e-3
@@ -211,7 +221,7 @@ class _TrackState:
         centre is no evidence of motion, and its shape is the last whole one, grown a little
         (`Stationarity.held_bound`).
         """
-        shape = detection.shape
+        shape = _few_vertices(detection.shape)
         self.shape = shape
         self.partial = detection.partial
         self.seen = detection.seen

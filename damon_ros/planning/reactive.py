@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from damon_ros.core.hull import few_vertices
 from damon_ros.core.shapes import Shape
 from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
 from damon_ros.planning.space_time import movers
@@ -35,7 +36,8 @@ def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
     """A shape of the same kind that contains ``shape`` over the next ``horizon`` seconds of
     straight motion at ``velocity``: centred halfway, a sphere's radius grown by half the
     travel, a box's extents and a cylinder's length by the travel and its radius by half of
-    it, a point set joined by its moved copy (the hull is then the exact sweep).
+    it, a point set joined by its moved copy (the hull is then the exact sweep; its 26-DOP where
+    that has more than `hull.MAX_HULL_VERTICES` vertices).
 
     Why not the bounding sphere of the sweep: a tracked box is never quite still (its
     estimated centre jitters by millimetres, giving ~0.03 m/s of velocity), and the sphere
@@ -57,8 +59,9 @@ def swept(shape: Shape, velocity: np.ndarray, horizon: float) -> Shape:
     elif shape.kind == "cylinder":
         size = (shape.size[0] + 0.5 * travel, shape.size[1] + travel)
     else:  # points, in the shape's frame: the hull of both copies contains every position
+        # (no more vertices than `few_vertices` leaves: each one costs every query)
         step = shape.rotation().T @ (2.0 * half)
-        points = np.vstack([shape.points, shape.points + step])
+        points = few_vertices(np.vstack([shape.points, shape.points + step]))
         return Shape("points", (), shape.position, shape.orientation, points, shape.name)
     return Shape(shape.kind, size, center, shape.orientation, name=shape.name)
 

@@ -8,7 +8,7 @@ import pytest
 
 from damon_ros.core import sphere_kernels
 from damon_ros.core.collision import obstacle_geometry, signed_distance
-from damon_ros.core.hull import hull_faces, hull_signed_many
+from damon_ros.core.hull import MAX_HULL_VERTICES, few_vertices, hull_faces, hull_signed_many
 from damon_ros.core.shapes import Shape
 
 
@@ -55,3 +55,24 @@ def test_kernel_is_the_hull_not_its_bounding_sphere():
     assert tight == pytest.approx(exact, abs=1e-12)
     assert tight == pytest.approx(_coal_signed(p, shape), abs=2e-6)
     assert bound < tight - 0.01  # the bound tests stay conservative
+
+
+@pytest.mark.parametrize("n", [20, 150, 2000])
+def test_few_vertices_contain_the_hull_with_at_most_the_cap(n):
+    """A point set's stand-in keeps every point of it inside its hull, with no more than
+    `MAX_HULL_VERTICES` vertices (the points themselves when they are that few), and is not
+    much larger (a 26-DOP of an ellipsoid: 1.3 times its volume)."""
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(n)
+    d = rng.normal(size=(n, 3))
+    points = d / np.linalg.norm(d, axis=1, keepdims=True) * [0.1, 0.05, 0.2] + [0.4, 0.1, 0.3]
+    few = few_vertices(points)
+    if n <= MAX_HULL_VERTICES:
+        assert few is points or np.array_equal(few, points)
+        return
+    assert len(few) <= MAX_HULL_VERTICES
+    hull = ConvexHull(few)
+    values = points @ hull.equations[:, :3].T + hull.equations[:, 3]
+    assert np.all(values <= 1e-12)
+    assert hull.volume < 1.4 * ConvexHull(points).volume
