@@ -127,16 +127,19 @@ def _closest_on_triangle(px, py, pz, f):
 
 
 @njit(cache=True)
-def hull_signed(px, py, pz, faces, start, end):
+def hull_signed(px, py, pz, faces, start, end, need=math.inf):
     """Signed distance from p to the hull of face rows ``faces[start:end]`` (negative
-    inside); +inf for an empty range."""
+    inside); +inf for an empty range. Where the largest face value, a lower bound of the
+    distance outside, is at least ``need``, that bound is returned instead: a caller that
+    only asks whether p is nearer than ``need`` skips the triangles (a path beside a
+    tracked point set spent 0.1-0.3 s of a re-route in them)."""
     if end <= start:
         return math.inf
     top = -math.inf
     for i in range(start, end):
         f = faces[i]
         top = max(top, f[9] * px + f[10] * py + f[11] * pz + f[12])
-    if top <= 0.0:
+    if top <= 0.0 or top >= need:
         return top
     best = math.inf
     for i in range(start, end):

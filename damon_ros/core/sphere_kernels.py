@@ -83,12 +83,13 @@ def _signed(px, py, pz, kind, pos, rot, params, hull, k):
 
 
 @njit(cache=True)
-def _signed_tight(px, py, pz, kind, pos, rot, params, hull, k):
-    """Signed distance from p to obstacle k, exact for a hull (no faces: its sphere)."""
+def _signed_tight(px, py, pz, kind, pos, rot, params, hull, k, need=math.inf):
+    """Signed distance from p to obstacle k, exact for a hull (no faces: its sphere); for a
+    hull, a lower bound of at least ``need`` where that settles it (`hull_signed`)."""
     d = _signed(px, py, pz, kind, pos, rot, params, hull, k)
-    if kind[k] != HULL or params[k, 2] <= params[k, 1]:
+    if kind[k] != HULL or params[k, 2] <= params[k, 1] or d >= need:
         return d
-    return max(d, hull_signed(px, py, pz, hull, int(params[k, 1]), int(params[k, 2])))
+    return max(d, hull_signed(px, py, pz, hull, int(params[k, 1]), int(params[k, 2]), need))
 
 
 GROUP_SIZE = 12
@@ -215,7 +216,8 @@ def _distance_below(q, limit, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb, kind, 
                     continue
                 for s_i in range(gs[h], ge[h]):
                     cx, cy, cz = _placed(fr, fp, j, sc[s_i])
-                    d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k) - sr[s_i] - off
+                    d = _signed_tight(cx, cy, cz, kind, pos, rot, params, hull, k,
+                                      best + sr[s_i] + off) - sr[s_i] - off
                     if d < best:
                         best = d
                         where[0], where[1] = s_i, k
