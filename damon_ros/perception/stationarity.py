@@ -78,9 +78,10 @@ class Stationarity:
         """The bound of an object in place that an occluder cut (`cut_in_place` was True):
         its last whole bound grown by ``moving_shift_m`` (its visible surface lies within
         that of the whole bound's), where that is a sphere, box or cylinder; else
-        ``cut_bound``, the cut view's own. That bounds only what the view shows: a pole cut
-        in two by a passing ball was half outside it, and a cut-off pole's view-extended box
-        reached 9 cm toward the arm, which then held between it and the ball."""
+        ``cut_bound``, the cut view's own. The cut view's bound covers only what it shows:
+        a pole cut in two by a passing ball was half outside it, and a cut-off pole's
+        view-extended box reached 9 cm toward the arm, which then held between it and the
+        ball."""
         whole = self.whole
         if whole is None or whole.kind not in ("sphere", "box", "cylinder"):
             return cut_bound

@@ -127,10 +127,10 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
     may cut its silhouette): its points and faces count, its silhouette bounds nothing, and
     an end that only such views could bound makes the points no box. With ``occluders[v]``
     (view ``v``'s occluding pixels, `segmentation.Blob.occluders`) a cut view's silhouette
-    bounds each end whose last points lie away from them and from the image border (a
-    convex object's hidden part reaches beyond its last visible point only next to what
-    hides it), and an end no silhouette bounds then lies at most the class prior
-    (``max_thickness_m.box``) beyond the last point seen there."""
+    bounds each end where one of its last points lies away from them and from the image
+    border (`_BoxView.bounds_end`: an end of a box is a face's plane, which one point of
+    its edge in plain view places), and an end no silhouette bounds then lies at most the
+    class prior (``max_thickness_m.box``) beyond the last point seen there."""
     cut = [False] * len(views) if cut is None else list(cut)
     points = np.vstack([p for _, p in views])
     if len(points) < config.min_points:
