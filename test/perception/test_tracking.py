@@ -336,3 +336,27 @@ def test_tracker_processes_three_obstacle_frames_far_faster_than_the_camera():
     per_frame = (time.process_time() - start) / (len(frames) - 1)
     assert len(tracks) == 3
     assert per_frame < 1.0 / 60.0  # keeps up with a 30 fps camera twice over
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_ball_that_starts_fast_is_reported_near_its_speed_within_a_tenth_of_a_second(seed):
+    """The 0.3 s window's slope still holds the samples at rest just after a start (half the
+    speed or less); the short slope of the last 0.1 s is taken instead. A still ball's jitter
+    never passes for a start, nor does a steady mover's noise change its speed."""
+    from damon_ros.perception.velocity import VelocityWindow
+
+    rng = np.random.default_rng(seed)
+    start, speed = VelocityWindow(CONFIG.velocity_window_s), 1.3
+    still, steady = VelocityWindow(CONFIG.velocity_window_s), VelocityWindow(0.3)
+    for i in range(30):
+        t = i / 30
+        noise = rng.normal(0.0, 0.003, 3)
+        moved = start.add(t, np.array([max(0.0, speed * (t - 0.5)), 0.0, 0.0]) + noise)
+        rest = still.add(t, noise)
+        cruise = steady.add(t, np.array([0.4 * t, 0.0, 0.0]) + noise)
+        if t >= 0.6:  # 0.1 s after the start
+            assert moved[0] > 0.8 * speed, (t, moved)
+        if t >= 0.2:  # (two or three samples of noise alone make any slope)
+            assert np.linalg.norm(rest) < 0.1
+        if cruise is not None and t >= 0.2:
+            assert abs(cruise[0] - 0.4) < 0.1
