@@ -23,11 +23,9 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
+from damon_ros.core.hull import DOP_DIRECTIONS
 from damon_ros.core.shapes import Shape, enclosing_vertices, grown, volume
 
-_DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
-                        if (x, y, z) != (0, 0, 0)], dtype=float)
-_DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 MARGIN_M = 0.005
 """Added to each half-space of a bound that another camera's points showed too short:
 such a bound rests on a prior the object breaks a little (a pole seen nearly end-on is
@@ -45,7 +43,7 @@ def halfspaces(shape: Shape) -> np.ndarray:
     """``[n, b]`` rows with ``n . p + b <= 0`` inside, whose intersection contains ``shape``."""
     R = shape.rotation()
     if shape.kind == "sphere":
-        n = _DIRECTIONS
+        n = DOP_DIRECTIONS
         return np.column_stack([n, -(n @ shape.position) - shape.size[0]])
     if shape.kind == "box":
         half = 0.5 * np.asarray(shape.size)

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from damon_ros.core.hull import MAX_HULL_VERTICES, few_vertices
+from damon_ros.core.hull import DOP_DIRECTIONS, MAX_HULL_VERTICES, few_vertices
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, to_base_frame
 from damon_ros.perception.fusion import fuse
@@ -87,18 +87,13 @@ class Detection(NamedTuple):
     bound against them (`fusion.fuse`)."""
 
 
-_EXTREMES = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
-                      if (x, y, z) != (0, 0, 0)], dtype=float)
-_EXTREMES /= np.linalg.norm(_EXTREMES, axis=1, keepdims=True)
-
-
 def seen_part(points_base: np.ndarray, name: str = "") -> Shape:
     """The visible surface as a point set: the points extreme along 26 directions (its hull
     lies inside the hull of all the points, and is close to it; a few dozen points keep the
     marker small). It tells a refusal caused by what was seen from one caused by the hidden
     extent (:mod:`damon_ros.perception.unseen`); it bounds nothing."""
     points = np.asarray(points_base, dtype=float).reshape(-1, 3)
-    scores = _EXTREMES @ np.ascontiguousarray(points.T)  # 26 x N: argmax along rows
+    scores = DOP_DIRECTIONS @ np.ascontiguousarray(points.T)  # 26 x N: argmax along rows
     chosen = points[np.unique(np.argmax(scores, axis=1))]
     mid = 0.5 * (chosen.min(axis=0) + chosen.max(axis=0))
     return Shape("points", (), mid, points=chosen - mid, name=name)
@@ -121,11 +116,11 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
     if not checked:
         check_images(camera, rgb, depth)
     segmenter = Segmenter(config) if segmenter is None else segmenter
-    if still is not None:
-        still.start_frame(camera)
+    still = StillBlobs(0.0) if still is None else still  # (0: keeps no fit)
+    still.start_frame(camera)
     found = []
     for blob in segmenter.blobs(rgb, depth):
-        kept = None if still is None else still.reuse(blob, stamp)
+        kept = still.reuse(blob, stamp)
         if kept is not None:
             found.append(kept)
             continue
@@ -138,10 +133,8 @@ def detect(camera: Camera, config: TrackerConfig, rgb: np.ndarray, depth: np.nda
         found.append(Detection(blob.color, estimate.shape, estimate.round, blob.partial,
                                len(points), blob.area_px, seen_part(surface, blob.color),
                                surface))
-        if still is not None:
-            still.remember(blob, found[-1], stamp)
-    if still is not None:
-        still.end_frame()
+        still.remember(blob, found[-1], stamp)
+    still.end_frame()
     return found
 
 

@@ -55,15 +55,14 @@ class VelocityWindow:
         p = np.array([x for _, x in h])
         velocity = _slope(t, p)
         recent = t >= stamp - ONSET_WINDOW_S
-        if np.count_nonzero(recent) >= 3:
-            onset = _slope(t[recent], p[recent])
-            speed = float(np.linalg.norm(onset))
-            span = float(np.ptp(t[recent]))
-            if speed * span > ONSET_SHIFT_M and float(np.linalg.norm(onset - velocity)) > max(
-                    ONSET_SPEED_MPS, ONSET_SHARE * float(np.linalg.norm(velocity))) and \
-                    speed > float(np.linalg.norm(velocity)):
-                return onset
-        return velocity
+        if np.count_nonzero(recent) < 3:
+            return velocity
+        onset = _slope(t[recent], p[recent])
+        speed, window_speed = float(np.linalg.norm(onset)), float(np.linalg.norm(velocity))
+        started = (speed * float(np.ptp(t[recent])) > ONSET_SHIFT_M and speed > window_speed
+                   and float(np.linalg.norm(onset - velocity))
+                   > max(ONSET_SPEED_MPS, ONSET_SHARE * window_speed))
+        return onset if started else velocity
 
 
 def _slope(t: np.ndarray, p: np.ndarray) -> np.ndarray:
