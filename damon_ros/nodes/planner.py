@@ -94,8 +94,8 @@ PARAMETERS = (
           "between two checked instants (m)", 0.001, 0.1),
     Param("prediction_moving_speed_m_s", 0.05, "obstacles reported slower are static "
           "(m/s; above a still box's velocity jitter)", 0.0, 1.0),
-    Param("resting_buffer_m", 0.05, "a new goal's route keeps this much more from balls at "
-          "rest (m; one may start to roll; dropped when no route keeps it)", 0.0, 0.5),
+    Param("resting_buffer_m", 0.05, "a new goal's route keeps this much more from anything "
+          "at rest (m; it may start to move; dropped when no route keeps it)", 0.0, 0.5),
     Param("monitor_rate_hz", 20.0, "fixed-rate re-check of the remaining path (Hz)",
           0.5, 1000.0),
     Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "

@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="certify paths against swept obstacles only (the rule before "
                              "space-time certification), for comparison")
     parser.add_argument("--resting-buffer", type=float, default=None,
-                        help="m a new goal's route keeps beyond the margin from balls at rest "
+                        help="m a new goal's route keeps beyond the margin from anything at rest "
                              "(default: the planner node's resting_buffer_m, 0.05; 0 = off)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -116,20 +116,30 @@ def _ball_beside(fast: Robot, q: np.ndarray, low: float, high: float) -> Shape:
     raise AssertionError("no place for the ball")
 
 
-def test_a_new_goals_route_keeps_the_buffer_from_a_ball_at_rest_unless_none_does(planner,
-                                                                                robots):
-    """A ball at rest may start to roll: a new goal's route keeps `resting_buffer_m` more
+def test_a_new_goals_route_keeps_the_buffer_from_things_at_rest_unless_none_does(planner,
+                                                                                  robots):
+    """A thing at rest may start to move: a new goal's route keeps `resting_buffer_m` more
     from it than the margin (B-001's ball lies by the direct route), and a goal the buffer
-    would refuse (a ball beside the goal pose) is still planned, without it. Only balls
-    slower than the movers' threshold count as at rest; boxes do not."""
+    would refuse (a ball beside the goal pose) is still planned, without it. Whatever is
+    slower than the movers' threshold counts as at rest, balls, boxes and point sets alike
+    (on the stress bench resting boxes and compound objects started toward passing arms)."""
     fast, _ = robots
     scenario = next(s for s in SCENARIOS if s.name == "B-001")
     (ball,) = scenario.obstacles_at(0.0)
     margin, buffer = planner.config.margin, 0.05
     box = Shape("box", (0.1, 0.1, 0.1), np.array([0.5, 0.3, 0.3]))
+    cube = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05)
+                     for z in (-0.05, 0.05)])
+    points = Shape("points", (), np.array([0.5, -0.3, 0.3]), points=cube)
     slow, fast_v = np.array([0.01, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
-    grown = resting_buffered([(ball, slow), (ball, fast_v), (box, np.zeros(3))], buffer, 0.05)
-    assert [s.size for s, _ in grown] == [(ball.size[0] + buffer,), ball.size, box.size]
+    grown = resting_buffered([(ball, slow), (ball, fast_v), (box, np.zeros(3)),
+                              (box, fast_v), (points, slow)], buffer, 0.05)
+    assert [s.size for s, _ in grown[:4]] == [(ball.size[0] + buffer,), ball.size,
+                                              (0.2, 0.2, 0.2), box.size]
+    corners = grown[4][0].points
+    assert np.allclose(np.linalg.norm(corners, axis=1),
+                       np.linalg.norm(cube, axis=1) + buffer)  # each pushed out by the buffer
+    assert resting_buffered([(box, fast_v)], buffer, 0.05)[0][0] is box
     plain = planner.plan(scenario.start, pose_goal(scenario), [ball])
     assert plain.success
     assert _fast_clearance_along(fast, plain.path, [ball]) < margin + buffer  # nearer
