@@ -82,7 +82,7 @@ def resting_buffered(obstacles: Sequence[tuple[Shape, np.ndarray]], buffer_m: fl
     0.35 m/s covers 5 cm. Only a new goal's route is planned with the buffer (and without it
     when that fails): a re-route is urgent, and the path checks use the shapes as they are.
     The price is a longer first route past still things (generated families, seed 1606:
-    goal time p50 +0.1-0.5 s)."""
+    goal time p50 +0.0-0.5 s)."""
     def resting(velocity: np.ndarray) -> bool:
         return float(np.linalg.norm(velocity)) < moving_speed_m_s
 
