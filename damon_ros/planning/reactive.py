@@ -78,9 +78,10 @@ def resting_buffered(obstacles: Sequence[tuple[Shape, np.ndarray]], buffer_m: fl
     family G). On the stress bench boxes and compound objects rest too, then cross at up to
     1.5 m/s: with balls alone buffered, 6 contacts in 1,000 scenes (seed 1606), one at
     0.6-1 m/s where RRT-Connect under the same runtime touched as well; with every resting
-    thing buffered, 1 (at 1-1.5 m/s). The arm's brake takes ~0.15 s, in which a thing at
-    0.35 m/s covers 5 cm. Only a new goal's route is planned with the buffer (and without it
-    when that fails): a re-route is urgent, and the path checks use the shapes as they are.
+    thing buffered, 1 and 3 in two runs, none up to 1 m/s. The arm's brake takes ~0.15 s,
+    in which a thing at 0.35 m/s covers 5 cm. Only a new goal's route is planned with the
+    buffer (and without it when that fails): a re-route is urgent, and the path checks use
+    the shapes as they are.
     The price is a longer first route past still things (generated families, seed 1606:
     goal time p50 +0.0-0.5 s)."""
     def resting(velocity: np.ndarray) -> bool:
