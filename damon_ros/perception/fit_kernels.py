@@ -245,6 +245,31 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
 
 
 @njit(cache=True)
+def sphere_spread(points: np.ndarray, centre: np.ndarray, rms: float) -> float:
+    """Standard error of the radius plus that of the centre along its least certain axis,
+    from the covariance ``rms^2 (J^T J)^-1`` of a sphere fit at ``centre``; inf when the
+    points fix no sphere."""
+    normal = np.zeros((4, 4))
+    unused = np.zeros(4)
+    row = np.empty(4)
+    for i in range(points.shape[0]):
+        dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        dist = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        row[0], row[1], row[2], row[3] = dx / dist, dy / dist, dz / dist, 1.0
+        _accumulate(normal, unused, row, 0.0)
+    cov = np.empty((4, 4))
+    for k in range(4):
+        unit = np.zeros(4)
+        unit[k] = 1.0
+        column, ok = _solve(normal, unit)
+        if not ok:
+            return np.inf
+        cov[:, k] = column * (rms * rms)
+    spread = np.linalg.eigvalsh(cov[:3, :3])[2]
+    return math.sqrt(max(cov[3, 3], 0.0)) + math.sqrt(max(spread, 0.0))
+
+
+@njit(cache=True)
 def _smallest(values: np.ndarray, sign: float, count: int) -> np.ndarray:
     """The ``count`` smallest of ``sign * values``, ascending: one pass with a sorted buffer
     (a percentile near an end needs only a handful of values; a full partition of a copy
@@ -428,6 +453,7 @@ def warm_up() -> None:
     ~10 s, which must not fall on a tracker's first frame."""
     points = np.random.default_rng(0).normal(size=(16, 3))
     sphere_fit(points, 1)
+    sphere_spread(points, np.zeros(3), 1.0)
     circle_fits(points, points[:2].copy(), points[2:4].copy())
     circle_refine(np.ascontiguousarray(points[:, :2]), 0.0, 0.0, 1.0, 1)
     roundest_axis(points, points[0].copy(), np.zeros((1, 2)), np.ones(1))

@@ -7,7 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from damon_ros.perception.fit_kernels import circle_refine, near_planes, roundest_axis
+from damon_ros.perception.fit_kernels import (
+    circle_refine,
+    near_planes,
+    roundest_axis,
+    sphere_spread,
+)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 7, 50, 99, 100, 101, 256, 257, 1000, 2001])
@@ -71,3 +76,18 @@ def test_the_roundest_axis_of_a_tilted_cylinder_side_is_its_axis():
     assert abs(radius - 0.05) < 0.005 and rms < 0.002
     assert np.allclose(frame.T @ frame, np.eye(3), atol=1e-12)
     assert np.linalg.det(frame) > 0.0
+
+
+def test_the_sphere_spread_is_the_fit_covariance_numpy_gives():
+    """`sphere_spread` is sqrt(var r) + sqrt(largest eigenvalue of cov(centre)) of
+    ``rms^2 (J^T J)^-1``, as numpy computes it; points that fix no sphere give inf."""
+    rng = np.random.default_rng(2)
+    points = rng.normal(size=(200, 3))
+    points = 0.07 * points / np.linalg.norm(points, axis=1)[:, None] + [0.4, 0.1, 0.9]
+    centre, rms = np.array([0.401, 0.099, 0.9]), 0.0015
+    d = points - centre
+    jacobian = np.column_stack([d / np.linalg.norm(d, axis=1)[:, None], np.ones(len(d))])
+    cov = rms**2 * np.linalg.inv(jacobian.T @ jacobian)
+    expected = math.sqrt(cov[3, 3]) + math.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])
+    assert sphere_spread(points, centre, rms) == pytest.approx(expected, rel=1e-9)
+    assert sphere_spread(np.tile(points[:1], (10, 1)), centre, rms) == math.inf

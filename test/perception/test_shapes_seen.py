@@ -489,6 +489,11 @@ def _front_and_side(scenario, seed: int) -> tuple[list, object]:
     (track,) = Tracker(CAMERA, CONFIG).update_views([CAMERA, SIDE], frames, 0.0)
     return frames, track
 
+def _each_camera(frames) -> list:
+    """Each of the front and side cameras' own detections of its frame (`_front_and_side`)."""
+    return [detect(c, CONFIG, *f) for c, f in zip((CAMERA, SIDE), frames, strict=True)]
+
+
 def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
     """A yawed box seen from the front and from the side at one instant: one upright box is
     fitted to the union of both cameras' points (each face its plane, each silhouette the
@@ -506,7 +511,7 @@ def test_two_synchronised_cameras_fit_one_yawed_box_to_all_they_saw():
         frames, track = _front_and_side(scenario, seed)
         assert track.shape.kind == "box"
         assert _inside(track.shape, [truth]) == 1.0
-        views = [detect(c, CONFIG, *f) for c, f in zip((CAMERA, SIDE), frames, strict=True)]
+        views = _each_camera(frames)
         ((fused, _, _),) = fuse([[(d.shape, d.partial) for d in v] for v in views], 0.15,
                                 seen=[[d.surface for d in v] for v in views])
         assert shapes.volume(track.shape) < shapes.volume(fused)
@@ -525,6 +530,59 @@ def test_two_synchronised_cameras_fit_one_turned_box_to_all_they_saw():
         assert track.shape.kind == "box"
         assert _inside(track.shape, [truth]) == 1.0
         assert shapes.volume(track.shape) < 2.0 * shapes.volume(truth)
+
+
+def test_two_synchronised_cameras_fit_one_ball_to_both_caps():
+    """A ball seen from the front and the side at one instant: one sphere is fitted to both
+    caps, and its margin (standard errors of a fit that two caps pin down) leaves it
+    tighter than either camera's own sphere, still containing the ball."""
+    ball = {"name": "s", "shape": "sphere", "size": [0.06], "color": "green",
+            "pose": {"position": [0.5, 0.1, 0.45], "orientation": [0, 0, 0, 1]}}
+    scenario = _scenario("A-001", ball, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        frames, track = _front_and_side(scenario, seed)
+        assert track.shape.kind == "sphere"
+        assert _inside(track.shape, [truth]) == 1.0
+        own = [found[0].shape for found in _each_camera(frames)]
+        assert all(o.kind == "sphere" and _inside(o, [truth]) == 1.0 for o in own)
+        assert track.shape.size[0] < min(o.size[0] for o in own)
+        assert track.shape.size[0] < truth.size[0] + 0.004
+
+
+def test_a_lumpy_ball_that_passes_as_round_is_still_contained():
+    """Two balls of one colour 15 mm apart pass the round test as one ball; the patch of
+    points their lump leaves outside the fit grows the sphere over it (`sphere_misfit`)."""
+    lumpy = {"name": "lump", "shape": "compound", "color": "green",
+             "parts": [{"shape": "sphere", "size": [0.05], "position": [0.0, 0.0, 0.0],
+                        "orientation": [0, 0, 0, 1]},
+                       {"shape": "sphere", "size": [0.04], "position": [0.0, 0.015, 0.003],
+                        "orientation": [0, 0, 0, 1]}],
+             "pose": {"position": [0.55, 0.05, 0.45], "orientation": [0, 0, 0, 1]}}
+    scenario = _scenario("A-001", lumpy, drop=True)
+    parts = scenario.obstacles[0].parts_at(0.0)
+    for seed in range(4):
+        d = _one_detection(scenario, seed=seed)
+        assert d.shape.kind == "sphere"
+        assert _inside(d.shape, parts) == 1.0
+
+
+def test_a_lone_cap_gets_a_wider_margin_than_a_whole_ball():
+    """`sphere_error`: the same noise on a cap seen from one side leaves the fit less sure
+    than on points all round the ball, so the cap's margin is the larger."""
+    from damon_ros.perception.shape_fit import fit_sphere, sphere_error
+
+    rng = np.random.default_rng(4)
+    directions = rng.normal(size=(600, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    cap = directions[directions[:, 2] < -0.3][:300]  # the side facing a camera on -z
+    errors = []
+    for unit in (directions[:300], cap):
+        points = 0.05 * unit * (1.0 + rng.normal(scale=0.03, size=(len(unit), 1)))
+        centre, _, rms = fit_sphere(points)
+        errors.append(sphere_error(points, centre, rms))
+    whole, lone = errors
+    assert 0.0 < whole < lone
 
 
 def test_unsynchronised_cameras_fuse_a_moving_box_that_still_contains_it():
@@ -641,6 +699,25 @@ def test_a_tilted_box_is_not_taken_for_an_upright_one(tilt_deg, upright):
     seen = points[facing & (np.abs(normals).sum(axis=1) == 1)]
     seen = seen + rng.normal(0.0, 0.001, seen.shape)
     assert (fit_box(CAMERA, seen, CONFIG) is not None) == upright
+
+
+def test_a_box_tilted_below_the_face_test_is_still_contained():
+    """A small box tilted 2.6 deg (below `MAX_FACE_TILT_RAD`, so it passes as upright):
+    the upright bound is grown by what that tilt moves its corners, and contains it (before,
+    corners stuck out 0.6 mm in a generated stress scene)."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_euler("z", 35.0, degrees=True) * Rotation.from_rotvec(
+        np.radians(2.6) * np.array([0.6, 0.8, 0.0]))
+    box = {"name": "b", "shape": "box", "size": [0.056, 0.06, 0.11], "color": "green",
+           "pose": {"position": [0.6, -0.1, 0.5], "orientation": rotation.as_quat().tolist()}}
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(4):
+        d = _one_detection(scenario, seed=seed)
+        assert d.shape.kind == "box"
+        assert _inside(d.shape, [truth]) == 1.0
+        assert shapes.volume(d.shape) < 2.0 * shapes.volume(truth)
 
 
 def _facing_samples(box: Shape, eye: np.ndarray, rng) -> np.ndarray:
