@@ -148,7 +148,8 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
         on_face = (near_low | near_high).any(axis=1)
         if on_face.mean() < BOX_SHARE:
             return None
-    bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config, occluders)
+    bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config, occluders,
+                           upright=True)
     if bound is None:
         return None
     lo, hi, seen, hidden, ends_by = bound
@@ -167,13 +168,16 @@ def frame_error(width: float) -> float:
 def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[bool],
                    axes: np.ndarray, local: np.ndarray, near_low: np.ndarray,
                    near_high: np.ndarray, config: TrackerConfig,
-                   occluders: Sequence[np.ndarray] | None = None) -> tuple | None:
+                   occluders: Sequence[np.ndarray] | None = None,
+                   upright: bool = False) -> tuple | None:
     """The box bound of the views' points in a box frame (``axes``: its axes as columns,
     ``local`` the points in it, ``near_low`` / ``near_high`` which lie near its robust
     planes), before the frame's own error is allowed for: ``(lo, hi, seen, hidden,
     ends_by)``, each axis bounded by a visible face's plane, a silhouette or the class
     prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which, for
-    `_skewed`), or None when the faces do not make a box. ``occluders``: `fit_box_seen`."""
+    `_skewed`), or None when the faces do not make a box. ``occluders``: `fit_box_seen`.
+    ``upright``: the frame is an upright box's, whose faces may show a small tilt
+    (`_tilt_allowance`; a tilted frame allows for its own error)."""
     tol = config.face_tolerance_m
     low, high = local.min(axis=0), local.max(axis=0)
     need = max(8, int(FACE_SHARE * len(local)))
@@ -190,8 +194,8 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
         [(near_low & ~edge).sum(axis=0) >= need, (near_high & ~edge).sum(axis=0) >= need])
     if not visible.any():
         return None
-    tilt = _tilt(local, near_low, near_high, visible)
-    if tilt > MAX_FACE_TILT_RAD:
+    tilts = _face_tilts(local, near_low, near_high, visible)
+    if tilts.max() > MAX_FACE_TILT_RAD:
         return None
     margin_face = config.surface_margin_m
     prior = config.max_thickness_m["box"]
@@ -242,20 +246,30 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
             return None
         seen.append(False)
         hidden.append(extra)
-    lo, hi = _tilt_allowance(lo, hi, tilt)
+    if upright:
+        lo, hi = _tilt_allowance(lo, hi, tilts, tilts > 0.0)
     return lo, hi, seen, hidden, ends_by
 
 
-def _tilt_allowance(lo: np.ndarray, hi: np.ndarray, tilt: float) -> tuple[np.ndarray,
-                                                                          np.ndarray]:
-    """The bound grown for the tilt its faces showed (below `MAX_FACE_TILT_RAD`, taken as
-    none by the frame): turned by ``tilt``, a corner moves along an axis by up to
-    ``tan(tilt)`` times half the diagonal across it. A 6 x 6 x 11 cm box tilted 2.6 deg
-    passed as upright and its corners stuck out 0.6 mm beyond the face planes (stress scene
-    S-v0.6-1-s2106-000, in 15 of 60 frames). An upright box's faces show 0.16 deg (median;
-    90 % below 0.4 deg: held scenes), which adds a fraction of a millimetre."""
-    extent = hi - lo
-    grow = math.tan(tilt) * 0.5 * np.sqrt(np.sum(extent * extent) - extent * extent)
+def _tilt_allowance(lo: np.ndarray, hi: np.ndarray, tilts: np.ndarray,
+                    measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An upright box's bound grown for the tilt its faces showed (below
+    `MAX_FACE_TILT_RAD`, taken as none by the frame). Turned by a small rotation ``w``, a
+    face across axis ``a`` tilts by the rotation about the other two axes, so ``|w_i|`` is
+    at most the tilt of a face across either other axis (``tilts[a]``, where
+    ``measured[a]``; otherwise the largest tilt seen), and a corner moves along axis ``k``
+    by at most ``|w_i| e_j + |w_j| e_i`` (``e``: the half extents across it). The turn
+    about the vertical is the frame's yaw error, which `_skewed` allows for. A 6 x 6 x 11 cm
+    box tilted 2.6 deg passed as upright and its corners stuck out 0.6 mm beyond the face
+    planes (stress scene S-v0.6-1-s2106-000, in 15 of 60 frames). An upright box's faces
+    show 0.16 deg (median; 90 % below 0.4 deg: held scenes): a fraction of a millimetre."""
+    fallback = float(tilts.max())
+    about = np.array([min([tilts[a] for a in range(3) if a != i and measured[a]],
+                          default=fallback) for i in range(2)] + [0.0])
+    turn = np.tan(about)
+    half = 0.5 * (hi - lo)
+    grow = np.array([turn[i] * half[j] + turn[j] * half[i]
+                     for i, j in ((1, 2), (0, 2), (0, 1))])
     return lo - grow, hi + grow
 
 
@@ -454,16 +468,19 @@ def _edge(cosines: np.ndarray, along: np.ndarray, faces: list[int], delta: float
     return delta / max(best, MIN_FACING)
 
 
-def _tilt(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
-          visible: np.ndarray) -> float:
-    """The largest angle (rad) between a visible face's own points' plane (not those on
-    another face too) and the frame's: over `MAX_FACE_TILT_RAD` the box is no box of this
-    frame (a small tilted box puts enough of its points within the face tolerance of
-    upright planes to pass as one, and its hidden corners then stick out of the upright
-    bound); below it, `_tilt_allowance` grows the bound by it. (Only the tilt beyond three
-    of its standard errors was too little: a 6 cm face's error is 0.6-1.3 deg.)"""
-    tilts = face_tilts(np.ascontiguousarray(local), near_low, near_high, visible)
-    return math.acos(min(1.0, float(tilts.min())))
+def _face_tilts(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
+                visible: np.ndarray) -> np.ndarray:
+    """Per axis, the largest angle (rad) between a visible face across it (its own points'
+    plane, not those on another face too) and the frame's; 0 where none was measured
+ Over
+    `MAX_FACE_TILT_RAD` the box is no box of this frame (a small tilted box puts enough of
+    its points within the face tolerance of upright planes to pass as one, and its hidden
+    corners then stick out of the upright bound); below it, `_tilt_allowance` grows the
+    bound by them. (Only the tilt beyond three of its standard errors was too little: a
+    6 cm face's error is 0.6-1.3 deg.)"""
+    cosines = face_tilts(np.ascontiguousarray(local), near_low, near_high, visible)
+    angles = np.where(cosines < 1.0, np.arccos(np.minimum(cosines, 1.0)), np.nan)
+    return np.nanmax(np.where(np.isnan(angles).all(axis=1)[:, None], 0.0, angles), axis=1)
 
 
 def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,
