@@ -270,6 +270,39 @@ def sphere_spread(points: np.ndarray, centre: np.ndarray, rms: float) -> float:
 
 
 @njit(cache=True)
+def patch_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: float,
+                 sigmas: float, min_count: int, cells: int) -> float:
+    """The largest mean residual ``|p - c| - r`` of a patch of the sphere's surface, less
+    ``sigmas`` of its standard error (``rms`` over the root of its count), or 0; patches
+    are the ``cells`` x ``cells`` squares of each face of the cube around the centre (the
+    direction's largest axis picks the face), and count from ``min_count`` points."""
+    patches = 6 * cells * cells
+    sums = np.zeros(patches)
+    counts = np.zeros(patches, np.int64)
+    for i in range(points.shape[0]):
+        dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        ax, ay, az = abs(dx), abs(dy), abs(dz)
+        if ax >= ay and ax >= az:
+            face, big, u, v, sign = 0, ax, dy, dz, dx
+        elif ay >= az:
+            face, big, u, v, sign = 1, ay, dx, dz, dy
+        else:
+            face, big, u, v, sign = 2, az, dx, dy, dz
+        if big <= 0.0:
+            continue
+        iu = min(int((u / big + 1.0) * 0.5 * cells), cells - 1)
+        iv = min(int((v / big + 1.0) * 0.5 * cells), cells - 1)
+        k = ((2 * face + (1 if sign >= 0.0 else 0)) * cells + iu) * cells + iv
+        sums[k] += math.sqrt(dx * dx + dy * dy + dz * dz) - radius
+        counts[k] += 1
+    best = 0.0
+    for k in range(patches):
+        if counts[k] >= min_count:
+            best = max(best, sums[k] / counts[k] - sigmas * rms / math.sqrt(counts[k]))
+    return best
+
+
+@njit(cache=True)
 def _smallest(values: np.ndarray, sign: float, count: int) -> np.ndarray:
     """The ``count`` smallest of ``sign * values``, ascending: one pass with a sorted buffer
     (a percentile near an end needs only a handful of values; a full partition of a copy
@@ -454,6 +487,7 @@ def warm_up() -> None:
     points = np.random.default_rng(0).normal(size=(16, 3))
     sphere_fit(points, 1)
     sphere_spread(points, np.zeros(3), 1.0)
+    patch_misfit(points, np.zeros(3), 1.0, 0.1, 3.0, 5, 3)
     circle_fits(points, points[:2].copy(), points[2:4].copy())
     circle_refine(np.ascontiguousarray(points[:, :2]), 0.0, 0.0, 1.0, 1)
     roundest_axis(points, points[0].copy(), np.zeros((1, 2)), np.ones(1))

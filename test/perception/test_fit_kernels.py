@@ -10,6 +10,7 @@ import pytest
 from damon_ros.perception.fit_kernels import (
     circle_refine,
     near_planes,
+    patch_misfit,
     roundest_axis,
     sphere_spread,
 )
@@ -91,3 +92,20 @@ def test_the_sphere_spread_is_the_fit_covariance_numpy_gives():
     expected = math.sqrt(cov[3, 3]) + math.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])
     assert sphere_spread(points, centre, rms) == pytest.approx(expected, rel=1e-9)
     assert sphere_spread(np.tile(points[:1], (10, 1)), centre, rms) == math.inf
+
+
+def test_a_patch_outside_the_sphere_is_its_misfit_and_noise_is_none():
+    """`patch_misfit`: noise around a sphere gives 0; a patch of points 3 mm outside it
+    gives up to 3 mm: less three of its standard errors, and the patch (a square) holds a
+    little more than the lump (a round cap)."""
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(3000, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    rms = 0.001
+    radii = 0.05 + rng.normal(scale=rms, size=len(directions))
+    points = directions * radii[:, None]
+    assert patch_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, 3) == 0.0
+    lump = directions[:, 0] > 0.95  # a cap around +x, inside one patch of the +x face
+    points[lump] += 0.003 * directions[lump]
+    misfit = patch_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, 3)
+    assert 0.0015 < misfit < 0.003
