@@ -199,22 +199,26 @@ def camera_views(prefixes: Sequence[str], configs: Sequence[str], sync_tolerance
 @dataclass
 class LatencyStats:
     """Stamp -> publication latencies, processing times and the CPU time the processing took
-    of recent frames (seconds). Processing well above its CPU time means the node waited for a
-    core (a busy machine), not that tracking grew slower."""
+    of recent frames (seconds), and how much of that CPU time was tracking (the rest builds
+    and publishes the markers). Processing well above its CPU time means the node waited for
+    a core (a busy machine), not that tracking grew slower."""
 
     latency: deque
     processing: deque
     cpu: deque
+    tracking: deque
     frames: int = 0
 
     @classmethod
     def empty(cls) -> LatencyStats:
-        return cls(*(deque(maxlen=LATENCY_HISTORY) for _ in range(3)))
+        return cls(*(deque(maxlen=LATENCY_HISTORY) for _ in range(4)))
 
-    def add(self, latency_s: float, processing_s: float, cpu_s: float) -> None:
+    def add(self, latency_s: float, processing_s: float, cpu_s: float,
+            tracking_cpu_s: float) -> None:
         self.latency.append(latency_s)
         self.processing.append(processing_s)
         self.cpu.append(cpu_s)
+        self.tracking.append(tracking_cpu_s)
         self.frames += 1
 
     def summary(self) -> str:
@@ -226,7 +230,8 @@ class LatencyStats:
                 f"{np.percentile(lat, 95):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms, max "
                 f"{lat.max():.2f} ms; processing p50 "
                 f"{np.median(proc):.2f} ms, its CPU time p50 {1e3 * np.median(self.cpu):.2f} ms "
-                f"(last {lat.size} frames)")
+                f"(tracking p50 {1e3 * np.median(self.tracking):.2f} ms) (last {lat.size} "
+                "frames)")
 
 
 # --- the node ---------------------------------------------------------------------------------
@@ -344,12 +349,13 @@ class TrackerNode(Node):
         if tracks is None:  # older than another camera's frame: kept for fusion only
             self.late_frames += 1
             return
+        tracked_cpu = time.thread_time()
         markers, self._shown = obstacle_markers(tracks, self._shown, self.base_frame, stamp,
                                                 self.lifetime_s, self.publish_partial)
         self._pub.publish(marker_array_bytes(markers))
         latency = clock_seconds(self) - stamp_seconds(stamp)
         self.stats.add(latency, time.perf_counter() - started,
-                       time.thread_time() - cpu_started)
+                       time.thread_time() - cpu_started, tracked_cpu - cpu_started)
         self.get_logger().debug(f"{len(tracks)} tracks, latency {latency * 1e3:.2f} ms")
 
     def _log_stats(self) -> None:

@@ -218,9 +218,10 @@ def test_dropped_tracks_get_a_delete_marker_and_partial_ones_are_optional():
 def test_stats_line_gives_cpu_time_beside_processing_and_the_soak_reads_it():
     stats = tracker.LatencyStats.empty()
     for k in range(1, 4):
-        stats.add(0.010 * k, 0.004 * k, 0.002 * k)
+        stats.add(0.010 * k, 0.004 * k, 0.002 * k, 0.0015 * k)
     line = f"[12.5] [tracker]: 30.0 frames/s tracked; {stats.summary()}"
-    assert "processing p50 8.00 ms, its CPU time p50 4.00 ms (last 3 frames)" in line
+    assert ("processing p50 8.00 ms, its CPU time p50 4.00 ms (tracking p50 3.00 ms) (last 3 "
+            "frames)") in line
     match = soak_monitor.TRACKER_STATS.search(line)
     assert match is not None and float(match.group(3)) == pytest.approx(20.0)
 
