@@ -63,6 +63,8 @@ def _joint_sphere(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
         return None
     points = np.vstack([p for _, _, p, _ in seen])
     margin = sphere_margin(points, centre, radius, rms, config, fitted)
+    if not np.isfinite(margin):
+        return None
     return Shape("sphere", (radius + margin,), centre, name=name)
 
 

@@ -161,8 +161,8 @@ def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: 
         # The fit, not the noisy points, says where the surface is: the farthest point
         # reaches ~3.5 noise sigmas past it, which adds a third to a small ball's volume;
         # so did a fixed 5 mm inflation (the rms is ~1.5 mm of 2 mm depth noise)
-        return centre, radius, sphere_margin(points, centre, radius, rms, config,
-                                             points[::stride])
+        margin = sphere_margin(points, centre, radius, rms, config, points[::stride])
+        return (centre, radius, margin) if math.isfinite(margin) else None
     return centre, max(radius, _reach(local, basis.T @ centre)), config.inflation_m
 
 
@@ -195,7 +195,7 @@ def sphere_margin(points: np.ndarray, centre: np.ndarray, radius: float, rms: fl
     """What a sphere fitted to ``fitted`` (default ``points``) is grown by so that it
     contains the object: the surface margin, `SPHERE_SIGMAS` standard errors of the fit
     (`sphere_error`) and what the object showed of a shape other than a ball
-    (`sphere_misfit` over all ``points``)."""
+    (`sphere_misfit` over all ``points``); inf when the points pin no sphere."""
     fitted = points if fitted is None else fitted
     return (config.surface_margin_m + SPHERE_SIGMAS * sphere_error(fitted, centre, rms)
             + sphere_misfit(points, centre, radius, rms))
