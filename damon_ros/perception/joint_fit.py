@@ -22,7 +22,12 @@ import numpy as np
 
 from damon_ros.core.shapes import Shape, contains, volume
 from damon_ros.perception.camera import Camera
-from damon_ros.perception.shape_fit import FIT_POINTS, fit_sphere, sphere_margin
+from damon_ros.perception.shape_fit import (
+    FIT_POINTS,
+    fit_sphere,
+    small_residual,
+    sphere_margin,
+)
 from damon_ros.perception.tight_fit import fit_box_seen
 from damon_ros.perception.tilted_box import fit_tilted_box
 from damon_ros.perception.tracker_config import TrackerConfig
@@ -54,7 +59,7 @@ def _joint_sphere(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
         centre, radius, rms = fit_sphere(fitted)
     except ValueError:
         return None
-    if rms > config.sphere_rms_ratio * radius + config.sphere_rms_floor_m:
+    if not small_residual(config, radius, rms):
         return None
     # each camera's own ball bounds what it saw: the one fit must lie inside every one of
     # them, or the views disagree (an object lumpy on a side only one camera sees)

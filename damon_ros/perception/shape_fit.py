@@ -121,11 +121,17 @@ FIT_POINTS = 300
 centre far below a millimetre, and big blobs (near boxes) would otherwise dominate the cost."""
 
 
+def small_residual(config: TrackerConfig, radius: float, rms: float) -> bool:
+    """The residual of a sphere fit is no more than a ball's points leave (the round test's
+    first part; `joint_fit` asks it of one fit to several cameras' points)."""
+    return rms <= config.sphere_rms_ratio * radius + config.sphere_rms_floor_m
+
+
 def _is_round(config: TrackerConfig, radius: float, rms: float, width: float,
               centre_depth: float, surface_depth: float) -> bool:
     """A sphere fit describes the blob: small residual, radius ~ half width, centre behind."""
     return (
-        rms <= config.sphere_rms_ratio * radius + config.sphere_rms_floor_m
+        small_residual(config, radius, rms)
         and abs(radius - 0.5 * width) <= config.sphere_width_ratio * 0.5 * width
         and centre_depth > surface_depth
     )
@@ -191,12 +197,11 @@ def sphere_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: fl
 
 
 def sphere_margin(points: np.ndarray, centre: np.ndarray, radius: float, rms: float,
-                  config: TrackerConfig, fitted: np.ndarray | None = None) -> float:
-    """What a sphere fitted to ``fitted`` (default ``points``) is grown by so that it
-    contains the object: the surface margin, `SPHERE_SIGMAS` standard errors of the fit
+                  config: TrackerConfig, fitted: np.ndarray) -> float:
+    """What a sphere fitted to ``fitted`` (``points`` or a thinning of them) is grown by so
+    that it contains the object: the surface margin, `SPHERE_SIGMAS` standard errors of the fit
     (`sphere_error`) and what the object showed of a shape other than a ball
     (`sphere_misfit` over all ``points``); inf when the points pin no sphere."""
-    fitted = points if fitted is None else fitted
     return (config.surface_margin_m + SPHERE_SIGMAS * sphere_error(fitted, centre, rms)
             + sphere_misfit(points, centre, radius, rms))
 

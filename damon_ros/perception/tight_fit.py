@@ -247,24 +247,24 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
         seen.append(False)
         hidden.append(extra)
     if upright:
-        lo, hi = _tilt_allowance(lo, hi, tilts, tilts > 0.0)
+        lo, hi = _tilt_allowance(lo, hi, tilts)
     return lo, hi, seen, hidden, ends_by
 
 
-def _tilt_allowance(lo: np.ndarray, hi: np.ndarray, tilts: np.ndarray,
-                    measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _tilt_allowance(lo: np.ndarray, hi: np.ndarray,
+                    tilts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An upright box's bound grown for the tilt its faces showed (below
     `MAX_FACE_TILT_RAD`, taken as none by the frame). Turned by a small rotation ``w``, a
     face across axis ``a`` tilts by the rotation about the other two axes, so ``|w_i|`` is
-    at most the tilt of a face across either other axis (``tilts[a]``, where
-    ``measured[a]``; otherwise the largest tilt seen), and a corner moves along axis ``k``
+    at most the tilt of a face across either other axis (``tilts[a]``, where one was
+    measured: above 0; otherwise the largest tilt seen), and a corner moves along axis ``k``
     by at most ``|w_i| e_j + |w_j| e_i`` (``e``: the half extents across it). The turn
     about the vertical is the frame's yaw error, which `_skewed` allows for. A 6 x 6 x 11 cm
     box tilted 2.6 deg passed as upright and its corners stuck out 0.6 mm beyond the face
     planes (stress scene S-v0.6-1-s2106-000, in 15 of 60 frames). An upright box's faces
     show 0.16 deg (median; 90 % below 0.4 deg: held scenes): a fraction of a millimetre."""
     fallback = float(tilts.max())
-    about = np.array([min([tilts[a] for a in range(3) if a != i and measured[a]],
+    about = np.array([min([tilts[a] for a in range(3) if a != i and tilts[a] > 0.0],
                           default=fallback) for i in range(2)] + [0.0])
     turn = np.tan(about)
     half = 0.5 * (hi - lo)
@@ -471,16 +471,14 @@ def _edge(cosines: np.ndarray, along: np.ndarray, faces: list[int], delta: float
 def _face_tilts(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
                 visible: np.ndarray) -> np.ndarray:
     """Per axis, the largest angle (rad) between a visible face across it (its own points'
-    plane, not those on another face too) and the frame's; 0 where none was measured
- Over
+    plane, not those on another face too) and the frame's; 0 where none was measured. Over
     `MAX_FACE_TILT_RAD` the box is no box of this frame (a small tilted box puts enough of
     its points within the face tolerance of upright planes to pass as one, and its hidden
     corners then stick out of the upright bound); below it, `_tilt_allowance` grows the
     bound by them. (Only the tilt beyond three of its standard errors was too little: a
     6 cm face's error is 0.6-1.3 deg.)"""
     cosines = face_tilts(np.ascontiguousarray(local), near_low, near_high, visible)
-    angles = np.where(cosines < 1.0, np.arccos(np.minimum(cosines, 1.0)), np.nan)
-    return np.nanmax(np.where(np.isnan(angles).all(axis=1)[:, None], 0.0, angles), axis=1)
+    return np.arccos(np.minimum(cosines, 1.0)).max(axis=1)  # unmeasured faces give 1.0
 
 
 def hull_points(camera: Camera, points_optical: np.ndarray, config: TrackerConfig,
