@@ -245,6 +245,22 @@ def sphere_fit(points: np.ndarray, iterations: int) -> tuple[np.ndarray, float, 
 
 
 @njit(cache=True)
+def _covariance(normal: np.ndarray, rms: float) -> tuple[np.ndarray, bool]:
+    """A least-squares fit's covariance ``rms^2 normal^-1`` (``normal = J^T J``), column by
+    column; False when the normal matrix is singular (the points fix no fit)."""
+    n = normal.shape[0]
+    cov = np.empty((n, n))
+    for k in range(n):
+        unit = np.zeros(n)
+        unit[k] = 1.0
+        column, ok = _solve(normal, unit)
+        if not ok:
+            return cov, False
+        cov[:, k] = column * (rms * rms)
+    return cov, True
+
+
+@njit(cache=True)
 def sphere_spread(points: np.ndarray, centre: np.ndarray, rms: float) -> float:
     """Standard error of the radius plus that of the centre along its least certain axis,
     from the covariance ``rms^2 (J^T J)^-1`` of a sphere fit at ``centre``; inf when the
@@ -257,14 +273,9 @@ def sphere_spread(points: np.ndarray, centre: np.ndarray, rms: float) -> float:
         dist = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
         row[0], row[1], row[2], row[3] = dx / dist, dy / dist, dz / dist, 1.0
         _accumulate(normal, unused, row, 0.0)
-    cov = np.empty((4, 4))
-    for k in range(4):
-        unit = np.zeros(4)
-        unit[k] = 1.0
-        column, ok = _solve(normal, unit)
-        if not ok:
-            return np.inf
-        cov[:, k] = column * (rms * rms)
+    cov, ok = _covariance(normal, rms)
+    if not ok:
+        return np.inf
     spread = np.linalg.eigvalsh(cov[:3, :3])[2]
     return math.sqrt(max(cov[3, 3], 0.0)) + math.sqrt(max(spread, 0.0))
 
@@ -295,6 +306,98 @@ def patch_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: flo
         k = ((2 * face + (1 if sign >= 0.0 else 0)) * cells + iu) * cells + iv
         sums[k] += math.sqrt(dx * dx + dy * dy + dz * dz) - radius
         counts[k] += 1
+    best = 0.0
+    for k in range(patches):
+        if counts[k] >= min_count:
+            best = max(best, sums[k] / counts[k] - sigmas * rms / math.sqrt(counts[k]))
+    return best
+
+
+@njit(cache=True)
+def _cylinder_row(row: np.ndarray, p: np.ndarray, cx: float, cy: float, ax: float,
+                  ay: float) -> float:
+    """The Jacobian row (d/d cx, cy, ax, ay, r) of a point's distance to the axis line
+    ``(cx + ax z, cy + ay z, z)`` less the radius, with that distance (slopes are small:
+    the distance is taken across the frame's z, off by a relative ``slope^2 / 2``)."""
+    dx, dy = p[0] - cx - ax * p[2], p[1] - cy - ay * p[2]
+    dist = max(math.sqrt(dx * dx + dy * dy), 1e-9)
+    row[0], row[1] = -dx / dist, -dy / dist
+    row[2], row[3], row[4] = row[0] * p[2], row[1] * p[2], -1.0
+    return dist
+
+
+@njit(cache=True)
+def cylinder_refine(local: np.ndarray, cx: float, cy: float, radius: float,
+                    iterations: int) -> tuple[float, float, float, float, float, bool]:
+    """Gauss-Newton on a cylinder's five parameters from a circle across the frame's z
+    (``local``: N x 3 side points): axis point ``cx, cy`` at z = 0, axis slopes ``ax, ay``
+    and radius; False when a step's equations are singular."""
+    normal = np.empty((5, 5))
+    right = np.empty(5)
+    row = np.empty(5)
+    ax = ay = 0.0
+    for _ in range(iterations):
+        normal[:] = 0.0
+        right[:] = 0.0
+        for i in range(local.shape[0]):
+            dist = _cylinder_row(row, local[i], cx, cy, ax, ay)
+            _accumulate(normal, right, row, radius - dist)
+        step, ok = _solve(normal, right)
+        if not ok:
+            return cx, cy, ax, ay, radius, False
+        cx, cy, ax, ay, radius = (cx + step[0], cy + step[1], ax + step[2], ay + step[3],
+                                  radius + step[4])
+    return cx, cy, ax, ay, radius, True
+
+
+@njit(cache=True)
+def cylinder_spread(local: np.ndarray, cx: float, cy: float, radius: float, rms: float,
+                    low: float, high: float, angles: int) -> tuple[float, float]:
+    """Standard errors of a fitted cylinder: of its surface at the worst place, and of its
+    axis's direction (rad, the least certain way). The first is the largest, over both
+    ends (``low``, ``high`` along the axis; the variance is convex in between) and
+    ``angles`` directions round the axis, of ``g^T C g`` with ``C = rms^2 (J^T J)^-1`` the
+    five-parameter fit's covariance at ``cx, cy`` (zero slopes) and ``g`` how a surface
+    point there moves with each parameter; inf when the points fix no cylinder."""
+    normal = np.zeros((5, 5))
+    unused = np.zeros(5)
+    row = np.empty(5)
+    for i in range(local.shape[0]):
+        _cylinder_row(row, local[i], cx, cy, 0.0, 0.0)
+        _accumulate(normal, unused, row, 0.0)
+    cov, ok = _covariance(normal, rms)
+    if not ok:
+        return np.inf, np.inf
+    worst = 0.0
+    g = np.empty(5)
+    for z in (low, high):
+        for k in range(angles):
+            c, s = math.cos(2.0 * math.pi * k / angles), math.sin(2.0 * math.pi * k / angles)
+            g[0], g[1], g[2], g[3], g[4] = c, s, c * z, s * z, 1.0
+            worst = max(worst, g @ (cov @ g))
+    tilt = np.linalg.eigvalsh(cov[2:4, 2:4])[1]
+    return math.sqrt(worst), math.sqrt(max(tilt, 0.0))
+
+
+@njit(cache=True)
+def cylinder_misfit(local: np.ndarray, cx: float, cy: float, radius: float, rms: float,
+                    low: float, high: float, sigmas: float, min_count: int, angle_cells: int,
+                    length_cells: int) -> float:
+    """The largest mean residual (distance to the axis less the radius) of a patch of the
+    side, less ``sigmas`` of its standard error, or 0; patches are ``angle_cells`` sectors
+    round the axis times ``length_cells`` slices of ``low``..``high``, and count from
+    ``min_count`` points."""
+    patches = angle_cells * length_cells
+    sums = np.zeros(patches)
+    counts = np.zeros(patches, np.int64)
+    span = max(high - low, 1e-9)
+    for i in range(local.shape[0]):
+        dx, dy = local[i, 0] - cx, local[i, 1] - cy
+        a = (math.atan2(dy, dx) + math.pi) / (2.0 * math.pi)
+        ia = min(int(a * angle_cells), angle_cells - 1)
+        iz = min(max(int((local[i, 2] - low) / span * length_cells), 0), length_cells - 1)
+        sums[ia * length_cells + iz] += math.sqrt(dx * dx + dy * dy) - radius
+        counts[ia * length_cells + iz] += 1
     best = 0.0
     for k in range(patches):
         if counts[k] >= min_count:
@@ -490,6 +593,9 @@ def warm_up() -> None:
     patch_misfit(points, np.zeros(3), 1.0, 0.1, 3.0, 5, 3)
     circle_fits(points, points[:2].copy(), points[2:4].copy())
     circle_refine(np.ascontiguousarray(points[:, :2]), 0.0, 0.0, 1.0, 1)
+    cylinder_refine(points, 0.0, 0.0, 1.0, 1)
+    cylinder_spread(points, 0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 8)
+    cylinder_misfit(points, 0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 3.0, 5, 6, 3)
     roundest_axis(points, points[0].copy(), np.zeros((1, 2)), np.ones(1))
     near_planes(points, 0.01)
     face_counts(np.ascontiguousarray(points[:, :2]), np.arange(0.0, 1.0, 0.5), 0.01)

@@ -79,9 +79,11 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
 
     ``views``: per camera, its own bound of the object, the base-frame points it saw and
     whether its view is flagged partial (its points count, its silhouette bounds nothing).
-    Spheres in every view give one sphere fitted to all points (`_joint_sphere`);
+    Spheres in every whole view give one sphere fitted to all points (`_joint_sphere`);
     cylinders (or spheres that fit no one sphere) the smallest of the views' own that all
-    points agree with; boxes (or hulls) the upright box of the union
+    points agree with (the points of a view cut by an occluder too: a tight pole grown
+    into a polytope by the noise of a cut view's points was no longer kept whole
+    while a ball crossed it); boxes (or hulls) the upright box of the union
     (`tight_fit.fit_box_seen`), else its box in any orientation
     (`tilted_box.fit_tilted_box`). None when fewer than two views have points or the union
     fits no such shape: the caller keeps its fused bound.
@@ -90,9 +92,12 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
     if len(seen) < 2 or all(cut for *_, cut in seen):
         return None
     kinds = {s.kind for _, s, _, _ in seen}
-    if kinds == {"sphere"}:
+    # a view cut by an occluder or the border bounds only what it shows, whatever kind it
+    # became, but its points are the object's: the whole views say what the object is
+    whole = {s.kind for _, s, _, cut in seen if not cut}
+    if whole == {"sphere"}:
         return _joint_sphere(seen, config, name) or _smallest_agreed(seen, config)
-    if kinds == {"cylinder"}:
+    if whole == {"cylinder"}:
         return _smallest_agreed(seen, config)
     if kinds <= {"box", "points"}:
         points, cuts = [(c, p) for c, _, p, _ in seen], [cut for *_, cut in seen]

@@ -20,7 +20,13 @@ from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera
 from damon_ros.perception.fit_kernels import median, patch_misfit, sphere_fit, sphere_spread
 from damon_ros.perception.segmentation import Blob
-from damon_ros.perception.tight_fit import fit_box, fit_cylinder, hull_points
+from damon_ros.perception.tight_fit import (
+    MIN_PATCH_POINTS,
+    MISFIT_SIGMAS,
+    fit_box,
+    fit_cylinder,
+    hull_points,
+)
 from damon_ros.perception.tilted_box import fit_tilted_box
 from damon_ros.perception.tracker_config import TrackerConfig
 
@@ -172,10 +178,6 @@ def _round_fit(points: np.ndarray, local: np.ndarray, basis: np.ndarray, width: 
     return centre, max(radius, _reach(local, basis.T @ centre)), config.inflation_m
 
 
-MISFIT_SIGMAS = 3.0
-"""A patch's mean residual counts as the object's shape, not noise, beyond this many of its
-standard errors."""
-MIN_PATCH_POINTS = 5
 PATCH_CELLS = 3
 """The surface around a fitted sphere's centre is split into the 3 x 3 squares of each face
 of a cube (`fit_kernels.patch_misfit`): patches of about 30 deg."""

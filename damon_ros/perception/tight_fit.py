@@ -39,6 +39,9 @@ from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, project
 from damon_ros.perception.fit_kernels import (
     circle_refine,
+    cylinder_misfit,
+    cylinder_refine,
+    cylinder_spread,
     face_counts,
     face_line,
     face_tilts,
@@ -518,14 +521,37 @@ CYLINDER_SHARE = 0.92
 """A blob is a cylinder when this share of its points lie on the fitted side or on an end."""
 MIN_ARC_RAD = 1.2
 """The side must be seen over at least this arc (rad) for its circle to fix the axis."""
-FIT_SIGMAS = 3.5
-"""The side is bounded this many fit residuals (rms) beyond the fitted (least-squares) circle:
-the geometric fit of a few hundred points places it to about a residual (2.5 left 1-2 % of
-frames out by under a millimetre on the public poles). (Bounding
-by the farthest noisy point plus four residuals added ~70 % to a pole's volume.)"""
+CYLINDER_SIGMAS = 4.0
+"""A fitted side is grown by this many standard errors of its surface at the worst place
+(`cylinder_spread`; 4: a one-sided normal tail of 3e-5, as for balls). It was 3.5 fit
+residuals plus the last axis step over half the length: 6-7 mm on the generated poles,
+whose fit places the surface to about a millimetre."""
+MISFIT_SIGMAS = 3.0
+"""A patch's mean residual counts as the object's shape, not noise, beyond this many of its
+standard errors (balls and poles alike)."""
+MIN_PATCH_POINTS = 5
+MISFIT_SECTORS = 12
+MISFIT_SLICES = 4
+"""A side's patches (`cylinder_misfit`): 30 deg sectors round the axis times quarters of
+the length seen."""
+SIDE_RMS_SHARE = 0.3
+"""A side fits a cylinder when all its points (away from the ends) leave a residual of at
+most this share of the face tolerance: 1.4-1.6 mm on generated poles (2 mm depth noise),
+3.4-4.2 mm on small boxes whose faces a trimmed fit turned into an arc."""
+CAP_POINTS = 20
+"""An end face is measured when this many points lie on it (their mean then places it to
+a fraction of the noise, and their spread estimates that fraction)."""
+SPREAD_ANGLES = 16
+"""Directions round the axis at which `cylinder_spread` asks the surface's error."""
+AXIS_ITERATIONS = 3
+"""Gauss-Newton steps of the five-parameter fit from the grid's axis (it settles in two)."""
+SIDE_ROUNDS = 2
+"""The side's points are chosen again around the refined fit: the grid's circle leaves
+residuals of 4-7 mm (its axis ~1 deg off), too loose a band to leave the ends out."""
 AXIS_STEPS_RAD = (0.08, 0.02, 0.005)
 """The axis is searched on 5 x 5 grids of tilts about the principal direction, each this
-step, around the best of the previous one; the last step bounds its error."""
+step, around the best of the previous one; the five-parameter fit (`_refine_axis`) then
+finishes it."""
 MAX_FIT_POINTS = 400
 
 
@@ -557,15 +583,53 @@ def _best_axis(points: np.ndarray) -> tuple[np.ndarray, tuple] | None:
     return (frame, (np.array([cx, cy]), radius, rms)) if ok else None
 
 
+def _refine_axis(side: np.ndarray, frame: np.ndarray, centre2: np.ndarray,
+                 radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The frame turned onto the axis that a five-parameter fit of the side's points
+    (``side``: N x 3 in ``frame``) finds, and the axis's point across it. The grid search
+    leaves the axis up to ~1 deg off (measured on generated poles), which smears the circle
+    across the length: the fit's covariance can then bound the surface (`cylinder_spread`)."""
+    cx, cy, ax, ay, _, ok = cylinder_refine(np.ascontiguousarray(side), float(centre2[0]),
+                                            float(centre2[1]), radius, AXIS_ITERATIONS)
+    if not ok or not math.isfinite(ax * ay * cx * cy):
+        raise np.linalg.LinAlgError("the side's points fix no axis")
+    axis = frame @ np.array([ax, ay, 1.0])
+    axis /= np.linalg.norm(axis)
+    u = frame[:, 0] - (frame[:, 0] @ axis) * axis
+    u /= np.linalg.norm(u)
+    turned = np.column_stack([u, np.cross(axis, u), axis])
+    through = frame @ np.array([cx, cy, 0.0])
+    return turned, (turned.T @ through)[:2]
+
+
+def _side_points(local: np.ndarray, centre2: np.ndarray, radius: float, rms: float,
+                 tol: float) -> np.ndarray:
+    """Which points (``local``: N x 3 in the axis frame) fit the side: near the circle
+    (within 2 residuals) and a face tolerance away from either end. An end face seen lies
+    inside the circle up to its rim; its points pulled the fitted side in by 1.5-5.7 mm
+    (generated poles), more than the fit's own error."""
+    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
+    return (np.abs(dist - radius) <= max(2.0 * rms, 0.25 * tol)) & _away_from_ends(local, tol)
+
+
+def _away_from_ends(local: np.ndarray, tol: float) -> np.ndarray:
+    """Which points (N x 3 in the axis frame) lie more than ``tol`` from both ends."""
+    ends = np.percentile(local[:, 2], [1.0, 99.0])
+    return np.abs(local[:, 2:3] - ends).min(axis=1) > tol
+
+
 def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
                  name: str = "") -> Shape | None:
     """The cylinder of base-frame ``points`` (N x 3), any axis, or None when they are none.
 
     Its axis is the direction across which the points are most nearly a circle's arc (a
-    grid search about their principal direction); the arc must span `MIN_ARC_RAD` and face
-    the camera. The radius is the fitted one plus `FIT_SIGMAS` residuals, plus
-    what the last axis step can tilt over half the length; the length is what was seen,
-    grown by a sample at each end (the side is seen to its ends, the end faces need not be).
+    grid search about their principal direction, then a fit of all five parameters); the
+    arc must span `MIN_ARC_RAD` and face the camera. The radius is the fitted one grown by
+    the surface margin, `CYLINDER_SIGMAS` standard errors of the fitted surface at its
+    worst place (`cylinder_spread`: a short arc leaves the centre's depth and the radius
+    uncertain together) and the side's misfit (`cylinder_misfit`). The length is what was seen,
+    grown at each end by a sample (the side is seen to its ends) or, where the end face is
+    seen, to the face's plane (`_cap_plane`) grown by its errors.
     """
     if len(points) < config.min_points:
         return None
@@ -575,27 +639,34 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
         return None
     frame, (centre2, radius, rms) = found
     mean = sample.mean(axis=0)
-    local = (points - mean) @ frame
-    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
     tol = config.face_tolerance_m
-    # the side alone (end-face points lie inside the circle), fitted geometrically
-    side_points = np.abs(dist - radius) <= max(2.0 * rms, 0.25 * tol)
-    if side_points.sum() < config.min_points:
-        return None
-    centre2, radius, rms = _refine_circle(local[side_points, :2], centre2, radius)
+    try:
+        for turn in range(SIDE_ROUNDS + 1):
+            local = (points - mean) @ frame
+            side_points = _side_points(local, centre2, radius, rms, tol)
+            if side_points.sum() < config.min_points:
+                return None
+            centre2, radius, rms = _refine_circle(local[side_points, :2], centre2, radius)
+            if turn < SIDE_ROUNDS:
+                frame, centre2 = _refine_axis(local[side_points], frame, centre2, radius)
+    except np.linalg.LinAlgError:
+        return None  # the points are no cylinder's side
     dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
     on_side = np.abs(dist - radius) <= tol
     ends = np.percentile(local[:, 2], [1.0, 99.0])
     on_end = (np.abs(local[:, 2:3] - ends).min(axis=1) <= tol) & (dist <= radius + tol)
-    if (on_side | on_end).mean() < CYLINDER_SHARE or rms > 0.5 * tol:
+    residual = dist[_away_from_ends(local, tol)] - radius
+    if (on_side | on_end).mean() < CYLINDER_SHARE or residual @ residual > (
+            SIDE_RMS_SHARE * tol) ** 2 * len(residual):
         return None
     eye = (camera.position - mean) @ frame
     toward = eye[:2] - centre2
     if np.linalg.norm(toward) <= radius:
         return None  # the camera would be inside it
-    side = local[on_side & ~on_end, :2] - centre2  # (an end face's rim runs all round)
-    if len(side) < config.min_points:
+    side_local = local[on_side & ~on_end]  # (an end face's rim runs all round)
+    if len(side_local) < config.min_points:
         return None
+    side = side_local[:, :2] - centre2
     angles = np.arctan2(side[:, 1], side[:, 0])
     facing = np.cos(angles - math.atan2(toward[1], toward[0]))
     if float(np.ptp(angles)) < MIN_ARC_RAD or np.mean(facing > 0.0) < 0.95:
@@ -608,8 +679,35 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     sine = math.sqrt(max(0.0, 1.0 - (ray[2] / float(np.linalg.norm(ray))) ** 2))
     edge = (spacing_m(camera, config, depth) * EDGE_SAMPLES / max(sine, MIN_FACING)
             + config.surface_margin_m)
-    tilt = AXIS_STEPS_RAD[-1] * 0.5 * (high - low)
-    bound = radius + FIT_SIGMAS * rms + tilt + config.surface_margin_m
+    cx, cy = float(centre2[0]), float(centre2[1])
+    spread, tilt = cylinder_spread(np.ascontiguousarray(local[side_points]), cx, cy, radius,
+                                   rms, low, high, SPREAD_ANGLES)
+    misfit = cylinder_misfit(np.ascontiguousarray(side_local), cx, cy, radius, rms, low, high,
+                             MISFIT_SIGMAS, MIN_PATCH_POINTS, MISFIT_SECTORS, MISFIT_SLICES)
+    bound = radius + config.surface_margin_m + CYLINDER_SIGMAS * spread + misfit
+    if not math.isfinite(bound + tilt):
+        return None
+    # an end face seen is a plane across the axis, placed by its points' mean: grown by
+    # its standard errors and what the axis's error tilts it by at the rim
+    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
+    bottom = _cap_plane(local, dist, radius, low, eye[2] < low, tol)
+    top = _cap_plane(local, dist, radius, high, eye[2] > high, tol)
+    cap = config.surface_margin_m + CYLINDER_SIGMAS * tilt * bound
+    low = low - edge if bottom is None else bottom[0] - cap - CYLINDER_SIGMAS * bottom[1]
+    high = high + edge if top is None else top[0] + cap + CYLINDER_SIGMAS * top[1]
     centre = mean + frame @ np.array([*centre2, 0.5 * (low + high)])
     q = Rotation.from_matrix(frame).as_quat()
-    return Shape("cylinder", (bound, high - low + 2.0 * edge), centre, q, name=name)
+    return Shape("cylinder", (bound, high - low), centre, q, name=name)
+
+
+def _cap_plane(local: np.ndarray, dist: np.ndarray, radius: float, end: float, facing: bool,
+               tol: float) -> tuple[float, float] | None:
+    """Where the end face near ``end`` (along the axis) lies, and its standard error: the
+    mean of the points on it inside the rim (the side's last points lie on the rim), or
+    None unless it faces the camera with at least `CAP_POINTS` of them."""
+    if not facing:
+        return None
+    z = local[(np.abs(local[:, 2] - end) <= tol) & (dist <= radius - tol), 2]
+    if len(z) < CAP_POINTS:
+        return None
+    return float(z.mean()), float(z.std()) / math.sqrt(len(z))

@@ -35,7 +35,8 @@ def _true_centre(parts) -> np.ndarray:
 
 def measure(scenarios, seconds: float, fps: float, seed: int,
             cameras: str = "camera.yaml") -> list[dict]:
-    """One row per (frame, true obstacle) seen: kind, motion, containment, errors, time.
+    """One row per (frame, true obstacle) seen: kind, motion, containment, errors, time,
+    and the scenario and instant (to find a miss again).
 
     ``cameras``: comma-separated camera files, rendered at the same instant and fused
     (`Tracker.update_views`)."""
@@ -70,7 +71,8 @@ def measure(scenarios, seconds: float, fps: float, seed: int,
                 if not same:
                     rows.append({"kind": _kind(obstacle), "moving": _moving(obstacle, t),
                                  "seen": False, "time_ms": 1e3 * elapsed,
-                                 "cams": len(views), "set": cameras})
+                                 "cams": len(views), "set": cameras,
+                                 "scenario": scenario.name, "t": float(t)})
                     continue
                 track = min(same, key=lambda tr: np.linalg.norm(tr.shape.position - centre))
                 samples = np.vstack([shapes.surface_samples(p, 0.008) for p in parts])
@@ -85,7 +87,8 @@ def measure(scenarios, seconds: float, fps: float, seed: int,
                     "velocity_mps": float(np.linalg.norm(track.velocity
                                                          - obstacle.velocity_at(t))),
                     "estimate": track.shape.kind, "time_ms": 1e3 * elapsed,
-                    "cams": len(views), "set": cameras})
+                    "cams": len(views), "set": cameras, "scenario": scenario.name,
+                    "t": float(t)})
     return rows
 
 

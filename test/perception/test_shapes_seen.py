@@ -263,7 +263,48 @@ def test_a_tilted_cylinder_gets_a_cylinder_that_contains_it():
         assert d.shape.kind == "cylinder"
         assert _inside(d.shape, [truth]) == 1.0
         assert np.linalg.norm(d.shape.position - truth.position) < 0.02
-        assert shapes.volume(d.shape) < 2.5 * shapes.volume(truth)
+        # the side is placed by its fit's standard errors, not by its residuals (which
+        # added 6-7 mm): a few millimetres over the radius
+        assert truth.size[0] < d.shape.size[0] < truth.size[0] + 0.004
+        assert shapes.volume(d.shape) < 1.4 * shapes.volume(truth)
+
+
+def _top_end(shape: Shape) -> float:
+    """How far the end of ``shape`` (a cylinder) along its upper axis lies along base z."""
+    axis = shape.rotation()[:, 2]
+    return float((shape.position + np.sign(axis[2]) * axis * 0.5 * shape.size[1])[2])
+
+
+def test_an_end_face_in_view_bounds_its_end_tightly():
+    """A pole leaning toward the camera shows its top face: that end is measured (its
+    farthest point and the axis's tilt at the rim), not a silhouette edge a sample beyond the
+    last point; the bottom end, hidden, keeps the edge."""
+    scenario = _scenario("A-001", _pole(0.05, 0.2, [0.5, 0.0, 0.3], [0, 1, 0], 0.3),
+                         drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        d = _one_detection(scenario, seed=seed)
+        assert d.shape.kind == "cylinder" and _inside(d.shape, [truth]) == 1.0
+        assert _top_end(d.shape) - _top_end(truth) < 0.004
+        assert d.shape.size[1] - truth.size[1] < 0.012  # the hidden end: a sample or so
+
+
+def test_small_boxes_in_any_pose_are_never_taken_for_cylinders():
+    """Two faces of a small box turned anyhow can pass for an arc when the fit keeps only
+    the points it fits best (a carried box in a generated stress scene did, and its hidden
+    corners stuck out); all the points of a side must fit it, within the noise."""
+    rng = np.random.default_rng(21)
+    for _ in range(10):
+        q = rng.normal(size=4)
+        box = {"name": "b", "shape": "box", "size": [float(v) for v in rng.uniform(0.05, 0.12, 3)],
+               "color": "green", "pose": {"position": [float(rng.uniform(0.4, 0.9)),
+                                                       float(rng.uniform(-0.3, 0.3)),
+                                                       float(rng.uniform(0.3, 0.8))],
+                                          "orientation": [float(v) for v in q / np.linalg.norm(q)]}}
+        scenario = _scenario("A-001", box, drop=True)
+        d = _one_detection(scenario, seed=int(rng.integers(1000)))
+        assert d.shape.kind != "cylinder", box
+        assert _inside(d.shape, [scenario.obstacles[0].shape]) == 1.0, box
 
 
 def test_cylinders_in_any_pose_are_contained_by_what_the_tracker_makes_of_them():
@@ -642,6 +683,27 @@ def test_synchronised_cameras_arriving_one_by_one_fuse_as_one_instant():
         assert depth == pytest.approx(np.ptp(shapes.enclosing_vertices(synced.shape)[:, 0]))
         assert depth < 0.06 + 0.04
     assert tracker.update_camera(1, side, *frames[1], t) is None  # that instant has it
+
+
+def test_a_pole_seen_whole_by_one_camera_and_cut_by_the_other_stays_a_cylinder():
+    """The side camera's view of a pole is cut (a ball passes in front of it) and became a
+    box: the front camera's whole cylinder, which the cut view's points agree with, is
+    the object's bound. Fused as views of different kinds, the tight cylinder was grown into
+    a polytope by the cut view's noisy points, and no longer held as the pole's whole bound."""
+    from damon_ros.perception.joint_fit import joint_fit
+
+    scenario = _scenario("A-001", _pole(0.05, 0.2, [0.5, 0.05, 0.35], [1, 0, 0], 0.4),
+                         drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(3):
+        frames, _ = _front_and_side(scenario, seed)
+        (front,), (side,) = _each_camera(frames)
+        assert front.shape.kind == "cylinder"
+        cut = Shape("box", (0.2, 0.2, 0.3), truth.position)  # what a cut view may bound
+        shape = joint_fit([(CAMERA, front.shape, front.surface, False),
+                           (SIDE, cut, side.surface, True)], CONFIG, "blue")
+        assert shape is not None and shape.kind == "cylinder"
+        assert _inside(shape, [truth]) == 1.0
 
 
 def test_a_bound_that_leaves_out_what_another_camera_saw_is_not_intersected():
