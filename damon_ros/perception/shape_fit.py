@@ -56,10 +56,32 @@ def blob_points(camera: Camera, blob: Blob, config: TrackerConfig) -> np.ndarray
     # a cut at the MAD alone dropped its far third (side camera: 55 % of boxes contained).
     # Bleeding background lies a metre or more away: still far beyond this.
     lateral = max(float(np.ptp(u)) / fx, float(np.ptp(v)) / fy) * middle
-    inlier = np.abs(z - middle) <= max(config.mad_k * MAD_TO_SIGMA * mad, config.mad_floor_m,
-                                       lateral)
+    reach = max(config.mad_k * MAD_TO_SIGMA * mad, config.mad_floor_m, lateral)
+    inlier = _depth_run(z, middle - reach, middle + reach, config.mad_floor_m)
     z = z[inlier]
     return np.stack([(u[inlier] - cx) / fx * z, (v[inlier] - cy) / fy * z, z], axis=1)
+
+
+def _depth_run(z: np.ndarray, low: float, high: float, gap: float) -> np.ndarray:
+    """Which depths ``z`` lie in ``[low, high]``, or run on from it with no step over
+    ``gap`` between neighbouring depths. A surface is continuous in depth: a pole seen
+    nearly end-on is several times as deep as it is wide, and the window alone dropped its
+    far half (the side camera's cylinder then ended 4 cm short). Bleeding background lies
+    a metre or more away, across a step."""
+    order = np.argsort(z)
+    ranked = z[order]
+    start = int(np.searchsorted(ranked, low, side="left"))
+    stop = int(np.searchsorted(ranked, high, side="right"))
+    if stop <= start:
+        return np.zeros(len(z), dtype=bool)
+    steps = np.flatnonzero(np.diff(ranked) > gap)  # a step between ranked[i] and [i + 1]
+    below = steps[steps < start]
+    above = steps[steps >= stop - 1]
+    first = int(below[-1]) + 1 if len(below) else 0
+    last = int(above[0]) + 1 if len(above) else len(z)
+    keep = np.zeros(len(z), dtype=bool)
+    keep[order[first:last]] = True
+    return keep
 
 
 def fit_sphere(points: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, float, float]:

@@ -618,6 +618,66 @@ def _away_from_ends(local: np.ndarray, tol: float) -> np.ndarray:
     return np.abs(local[:, 2:3] - ends).min(axis=1) > tol
 
 
+class SideFit(NamedTuple):
+    """A pole's side fitted to its points: ``local`` are the points in ``frame`` (columns
+    u, v, axis; base frame) about ``origin``; the axis passes through ``centre2`` across
+    it; ``fitted`` marks the points the circle was fitted to."""
+
+    origin: np.ndarray
+    frame: np.ndarray
+    local: np.ndarray
+    centre2: np.ndarray
+    radius: float
+    rms: float
+    fitted: np.ndarray
+
+
+def fit_side(points: np.ndarray, origin: np.ndarray, frame: np.ndarray, centre2: np.ndarray,
+             radius: float, rms: float, config: TrackerConfig) -> SideFit | None:
+    """The side of base-frame ``points`` fitted from a first guess (a frame whose z is near
+    the axis, and the circle across it), or None when they fit no side: its points chosen
+    (`_side_points`), its circle refined, the axis refined by all five parameters
+    (`_refine_axis`), `SIDE_ROUNDS` times; then its circle in the final frame. All its
+    points away from the ends must fit it within `SIDE_RMS_SHARE` of the face tolerance.
+    One camera's points (`fit_cylinder`) or several cameras' (`joint_fit`)."""
+    tol = config.face_tolerance_m
+    try:
+        for turn in range(SIDE_ROUNDS + 1):
+            local = (points - origin) @ frame
+            fitted = _side_points(local, centre2, radius, rms, tol)
+            if fitted.sum() < config.min_points:
+                return None
+            centre2, radius, rms = _refine_circle(local[fitted, :2], centre2, radius)
+            if turn < SIDE_ROUNDS:
+                frame, centre2 = _refine_axis(local[fitted], frame, centre2, radius)
+    except np.linalg.LinAlgError:
+        return None  # the points are no cylinder's side
+    residual = np.linalg.norm(local[:, :2] - centre2, axis=1)[_away_from_ends(local, tol)]
+    residual -= radius
+    if residual @ residual > (SIDE_RMS_SHARE * tol) ** 2 * len(residual):
+        return None
+    return SideFit(origin, frame, local, centre2, radius, rms, fitted)
+
+
+def side_bound(fit: SideFit, low: float, high: float,
+               config: TrackerConfig) -> tuple[float, float]:
+    """The radius that bounds the pole from its fitted side, and the standard error of the
+    axis's direction (rad): the fitted radius grown by the surface margin,
+    `CYLINDER_SIGMAS` standard errors of the surface at its worst place between ``low``
+    and ``high`` along the axis (`cylinder_spread`) and what the side's points showed of a
+    shape other than a cylinder (`cylinder_misfit`: a lump, a bend); inf when the points
+    fix no cylinder."""
+    tol = config.face_tolerance_m
+    local, (cx, cy) = fit.local, (float(fit.centre2[0]), float(fit.centre2[1]))
+    spread, tilt = cylinder_spread(np.ascontiguousarray(local[fit.fitted]), cx, cy, fit.radius,
+                                   fit.rms, low, high, SPREAD_ANGLES)
+    dist = np.linalg.norm(local[:, :2] - fit.centre2, axis=1)
+    side = local[(np.abs(dist - fit.radius) <= tol) & _away_from_ends(local, tol)]
+    misfit = cylinder_misfit(np.ascontiguousarray(side), cx, cy, fit.radius, fit.rms, low, high,
+                             MISFIT_SIGMAS, MIN_PATCH_POINTS, MISFIT_SECTORS, MISFIT_SLICES)
+    return fit.radius + config.surface_margin_m + CYLINDER_SIGMAS * spread + misfit, tilt
+
+
 def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
                  name: str = "") -> Shape | None:
     """The cylinder of base-frame ``points`` (N x 3), any axis, or None when they are none.
@@ -638,26 +698,16 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     if found is None:
         return None
     frame, (centre2, radius, rms) = found
-    mean = sample.mean(axis=0)
     tol = config.face_tolerance_m
-    try:
-        for turn in range(SIDE_ROUNDS + 1):
-            local = (points - mean) @ frame
-            side_points = _side_points(local, centre2, radius, rms, tol)
-            if side_points.sum() < config.min_points:
-                return None
-            centre2, radius, rms = _refine_circle(local[side_points, :2], centre2, radius)
-            if turn < SIDE_ROUNDS:
-                frame, centre2 = _refine_axis(local[side_points], frame, centre2, radius)
-    except np.linalg.LinAlgError:
-        return None  # the points are no cylinder's side
+    fit = fit_side(points, sample.mean(axis=0), frame, centre2, radius, rms, config)
+    if fit is None:
+        return None
+    mean, frame, local, centre2, radius, rms, _ = fit
     dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
     on_side = np.abs(dist - radius) <= tol
     ends = np.percentile(local[:, 2], [1.0, 99.0])
     on_end = (np.abs(local[:, 2:3] - ends).min(axis=1) <= tol) & (dist <= radius + tol)
-    residual = dist[_away_from_ends(local, tol)] - radius
-    if (on_side | on_end).mean() < CYLINDER_SHARE or residual @ residual > (
-            SIDE_RMS_SHARE * tol) ** 2 * len(residual):
+    if (on_side | on_end).mean() < CYLINDER_SHARE:
         return None
     eye = (camera.position - mean) @ frame
     toward = eye[:2] - centre2
@@ -679,17 +729,11 @@ def fit_cylinder(camera: Camera, points: np.ndarray, config: TrackerConfig,
     sine = math.sqrt(max(0.0, 1.0 - (ray[2] / float(np.linalg.norm(ray))) ** 2))
     edge = (spacing_m(camera, config, depth) * EDGE_SAMPLES / max(sine, MIN_FACING)
             + config.surface_margin_m)
-    cx, cy = float(centre2[0]), float(centre2[1])
-    spread, tilt = cylinder_spread(np.ascontiguousarray(local[side_points]), cx, cy, radius,
-                                   rms, low, high, SPREAD_ANGLES)
-    misfit = cylinder_misfit(np.ascontiguousarray(side_local), cx, cy, radius, rms, low, high,
-                             MISFIT_SIGMAS, MIN_PATCH_POINTS, MISFIT_SECTORS, MISFIT_SLICES)
-    bound = radius + config.surface_margin_m + CYLINDER_SIGMAS * spread + misfit
+    bound, tilt = side_bound(fit, low, high, config)
     if not math.isfinite(bound + tilt):
         return None
     # an end face seen is a plane across the axis, placed by its points' mean: grown by
     # its standard errors and what the axis's error tilts it by at the rim
-    dist = np.linalg.norm(local[:, :2] - centre2, axis=1)
     bottom = _cap_plane(local, dist, radius, low, eye[2] < low, tol)
     top = _cap_plane(local, dist, radius, high, eye[2] > high, tol)
     cap = config.surface_margin_m + CYLINDER_SIGMAS * tilt * bound
