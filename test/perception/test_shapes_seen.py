@@ -815,7 +815,27 @@ def test_a_box_tilted_below_the_face_test_is_still_contained():
         d = _one_detection(scenario, seed=seed)
         assert d.shape.kind == "box"
         assert _inside(d.shape, [truth]) == 1.0
-        assert shapes.volume(d.shape) < 2.0 * shapes.volume(truth)
+        # the tilt it may have (two standard errors more than its faces show: ~1 deg each
+        # on faces of 6 cm at 2.5 m) grows each end by a few millimetres: 2.0-2.1x
+        assert shapes.volume(d.shape) < 2.3 * shapes.volume(truth)
+
+
+def test_a_box_tilted_within_its_faces_noise_is_contained_from_the_side():
+    """A 6 x 11 x 6 cm box tilted 2-3 deg (a mover of generated stress scene
+    S-v0.6-1-s2106-000), seen by the side camera: its faces show less tilt than it has
+    in some frames (a 6 cm face's normal is known to ~1 deg), so the upright bound is grown
+    for what the tilt may be, not for what it shows (2 of 40 noise seeds stuck out by
+    under a millimetre before)."""
+    box = {"name": "b", "shape": "box", "size": [0.0563, 0.1101, 0.0599], "color": "green",
+           "pose": {"position": [0.9152, -0.1811, 0.7488],
+                    "orientation": [0.644378, -0.259716, -0.295626, 0.65569]}}
+    scenario = _scenario("A-001", box, drop=True)
+    truth = scenario.obstacles[0].shape
+    for seed in range(40):
+        rgb, depth = render(SIDE, scene_at(scenario, 0.0), 0.002, 0.01,
+                            np.random.default_rng(seed))
+        (d,) = detect(SIDE, CONFIG, rgb, depth)
+        assert _inside(d.shape, [truth]) == 1.0, seed
 
 
 def _facing_samples(box: Shape, eye: np.ndarray, rng) -> np.ndarray:
