@@ -13,6 +13,7 @@ planes at right angles, so here the frame comes from the faces themselves:
 * each axis is then refined by the plane through its face's own points, and the three
   made orthonormal again (the rotation nearest them, weighted by their points).
 
+A blob whose largest face is a disk (a pole seen end-on) is no box (`_round_face`).
 In that frame the box is bounded exactly as an upright one (`tight_fit.bound_in_frame`:
 visible faces by their planes, unseen extents by silhouettes or the class prior), and each
 face is grown by what the frame's remaining angle error moves its corners.
@@ -25,6 +26,7 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
@@ -46,6 +48,10 @@ HYPOTHESES = 48
 """Candidate planes per search: a face holding a third of the points is among the
 candidates' best with probability 1 - (1 - 1/27)^48 > 0.8 for triples, and one search
 failing only leaves the blob bound."""
+ROUND_FILL = 0.8
+ROUND_MIN_POINTS = 20
+"""A face of at least this many points is a disk (`_round_face`) when its hull fills this
+share of the circle through its farthest corner (a rectangle at most 2 / pi = 0.64)."""
 INLIER_SHARE = 0.5
 """A candidate plane's inliers lie within this share of the face tolerance of it."""
 
@@ -65,7 +71,8 @@ def fit_tilted_box(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerCo
         return None
     local = np.ascontiguousarray(points @ axes)
     near_low, near_high = near_planes(local, tol)
-    if (near_low | near_high).any(axis=1).mean() < BOX_SHARE:
+    if (near_low | near_high).any(axis=1).mean() < BOX_SHARE or _round_face(
+            local, near_low, near_high):
         return None
     bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config)
     if bound is None:
@@ -82,6 +89,29 @@ def fit_tilted_box(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerCo
     shape = Shape("box", tuple(hi - lo), centre, Rotation.from_matrix(axes).as_quat(),
                   name=name)
     return BoxFit(shape, tuple(seen), tuple(hidden))
+
+
+def _round_face(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray) -> bool:
+    """Whether the face with the most points is a disk, not a rectangle: its points' hull
+    fills at least `ROUND_FILL` of the circle about the middle of their extent through its
+    farthest corner. A rectangle fills at most 2 / pi of it (a square; its corners are on
+    that circle), a disk nearly all. A pole seen 6 deg off its axis shows its end face, a
+    disk, which passed as a box's face; its hidden length then lay outside the box by
+    4 mm (side camera, generated G scene)."""
+    counts = np.concatenate([near_low.sum(axis=0), near_high.sum(axis=0)])
+    best = int(np.argmax(counts))
+    k = best % 3
+    face = (near_low if best < 3 else near_high)[:, k]
+    if np.count_nonzero(face) < ROUND_MIN_POINTS:
+        return False
+    xy = local[face][:, [j for j in range(3) if j != k]]
+    try:
+        hull = ConvexHull(xy)
+    except (QhullError, ValueError):
+        return False
+    middle = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+    reach = float(np.max(np.linalg.norm(xy[hull.vertices] - middle, axis=1)))
+    return bool(hull.volume >= ROUND_FILL * math.pi * reach * reach)
 
 
 def _frame(points: np.ndarray, tol: float) -> np.ndarray | None:
