@@ -36,6 +36,9 @@ from damon_ros.perception.tracker_config import TrackerConfig
 SHRUNK_SHARE = 0.8
 """A view with fewer pixels than this share of the whole views' typical count shows only
 part of the object (a still box's pixel count varies by a few per cent from frame to frame)."""
+JITTER_SHARE = 0.25
+"""A centre within this share of ``moving_shift_m`` of the anchor is the object at rest there
+(`Stationarity.jitter_m`)."""
 AREA_HISTORY = 15
 """The typical pixel count is the median of this many last whole views."""
 
@@ -86,6 +89,13 @@ class Stationarity:
         if whole is None or whole.kind not in ("sphere", "box", "cylinder"):
             return cut_bound
         return grown(whole, self.config.moving_shift_m)
+
+    @property
+    def jitter_m(self) -> float:
+        """How far a still object's centre is seen from its anchor by noise alone: a
+        quarter of ``moving_shift_m`` (a ball's centre jitters by a fraction of a millimetre,
+        a box's fit by a few)."""
+        return JITTER_SHARE * self.config.moving_shift_m
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """Take one observation; the velocity to report (zero while still)."""

@@ -224,9 +224,13 @@ class _TrackState:
                                        detection.surface):
             self.shape = self.stillness.held_bound(shape)
             return
+        was_still = self.stillness.still
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:
             self.velocity = self.stillness.update(stamp, shape.position, velocity)
+            if was_still and not self.stillness.still:  # it has just started to move
+                since = self.motion.since_rest(self.stillness.anchor, self.stillness.jitter_m)
+                self.velocity = self.velocity if since is None else since
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,
