@@ -5,8 +5,9 @@ millimetres from frame to frame, and over a 0.3 s window that reads as centimetr
 second, which the planner sweeps along the obstacle's predicted path. A track therefore
 becomes *still* once its speed has stayed below ``static_speed_mps`` for ``static_hold_s``
 and then reports zero velocity, until its speed exceeds the (higher) ``moving_speed_mps`` or
-its centre leaves the position it was still at by ``moving_shift_m``: two thresholds, so
-noise near one of them does not toggle the state every frame, and a slow start is still
+its centre leaves the position it was still at by ``moving_shift_m`` (a fitted ball, whose
+centre jitters by a fraction of a millimetre, by ``moving_shift_round_m``): two thresholds,
+so noise near one of them does not toggle the state every frame, and a slow start is still
 caught by the shift test. The still position (the anchor) is the mean of the centres over
 the hold, not one noisy centre, and it is never moved while the track stays still.
 
@@ -97,13 +98,17 @@ class Stationarity:
         a box's fit by a few)."""
         return JITTER_SHARE * self.config.moving_shift_m
 
-    def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-        """Take one observation; the velocity to report (zero while still)."""
+    def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray,
+               round_fit: bool = False) -> np.ndarray:
+        """Take one observation; the velocity to report (zero while still). ``round_fit``:
+        the observation is a fitted ball, whose centre the fit pins to a fraction of a
+        millimetre, so it is seen to leave its anchor by ``moving_shift_round_m``."""
         c = self.config
         speed = float(np.linalg.norm(velocity))
+        shift = c.moving_shift_round_m if round_fit else c.moving_shift_m
         if self.still:
             if speed > c.moving_speed_mps or float(
-                    np.linalg.norm(position - self.anchor)) > c.moving_shift_m:
+                    np.linalg.norm(position - self.anchor)) > shift:
                 self.still, self._slow_since, self._slow = False, None, []
             else:
                 return np.zeros(3)

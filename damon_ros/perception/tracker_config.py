@@ -27,7 +27,8 @@ _LOWER_BOUNDS: tuple[tuple[tuple[str, ...], str, Callable[[Any], bool]], ...] = 
       "min_depth_m", "surface_margin_m", "static_speed_mps"), ">= 0", lambda v: v < 0),
     (("max_depth_m", "mad_k", "mad_floor_m", "sphere_rms_ratio", "sphere_width_ratio",
       "gate_m", "max_age_s", "velocity_window_s", "time_jump_s", "face_tolerance_m",
-      "static_hold_s", "moving_speed_mps", "moving_shift_m", "max_speed_mps"), "> 0",
+      "static_hold_s", "moving_speed_mps", "moving_shift_m", "moving_shift_round_m",
+      "max_speed_mps"), "> 0",
      lambda v: not v > 0),
     (("fusion_window_s", "refit_after_s"), ">= 0", lambda v: v < 0),
 )
@@ -70,6 +71,7 @@ class TrackerConfig:
     static_hold_s: float = 0.25
     moving_speed_mps: float = 0.08
     moving_shift_m: float = 0.02
+    moving_shift_round_m: float = 0.007
     fusion_window_s: float = 0.05
     max_speed_mps: float = 1.0
     refit_after_s: float = 1.0

@@ -227,7 +227,8 @@ class _TrackState:
         was_still = self.stillness.still
         velocity = self.motion.add(stamp, shape.position)
         if velocity is not None:
-            self.velocity = self.stillness.update(stamp, shape.position, velocity)
+            self.velocity = self.stillness.update(stamp, shape.position, velocity,
+                                                  detection.round)
             if was_still and not self.stillness.still:  # it has just started to move
                 since = self.motion.since_rest(self.stillness.anchor, self.stillness.jitter_m)
                 self.velocity = self.velocity if since is None else since

@@ -364,10 +364,10 @@ def test_a_ball_that_starts_fast_is_reported_near_its_speed_within_a_tenth_of_a_
 
 def test_a_ball_that_starts_slowly_is_reported_at_its_speed_once_it_moves():
     """A ball at rest starts at 0.19 m/s (below the short slope's onset test: 2 cm in
-    0.1 s). Once the still track is seen to move, its velocity comes from the samples since
-    it was last at rest, not from a window that still holds it at rest (which reported
-    0.07-0.13 m/s for 0.1 s, and a stop certified against that was hit: generated G
-    scene, one camera)."""
+    0.1 s). It is seen to move within 1.5 cm, and its velocity then comes from the samples
+    since it was last at rest, not from a window that still holds it at rest (which
+    reported 0.07-0.13 m/s for 0.1 s, 2 cm late, and a stop certified against that was
+    hit: generated G scene G-s2402-045, one camera)."""
     import yaml
 
     from damon_ros.core.resources import public_scenarios_dir
@@ -389,5 +389,7 @@ def test_a_ball_that_starts_slowly_is_reported_at_its_speed_once_it_moves():
                                                                             strict=True)]
     assert all(v < 0.01 for t, v in reported if t < 1.0)  # at rest, then seen to move ...
     moving = [(t, v) for t, v in reported if t >= 1.0 and v > 0.01]
-    assert moving and moving[0][0] < 1.2  # ... within its first 2 cm
+    # ... within its first 1.5 cm: a fitted ball's centre is seen to leave its anchor by
+    # moving_shift_round_m, not by a box's moving_shift_m (2 cm: 0.1 s at this speed)
+    assert moving and moving[0][0] < 1.0 + 0.015 / speed, moving
     assert all(abs(v - speed) < 0.25 * speed for _, v in moving), moving
