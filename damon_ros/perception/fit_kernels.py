@@ -426,7 +426,7 @@ def _smallest(values: np.ndarray, sign: float, count: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def _robust_ends(values: np.ndarray) -> tuple[float, float]:
+def robust_ends(values: np.ndarray) -> tuple[float, float]:
     """The 1st and 99th percentiles of ``values`` (linear interpolation, as np.percentile)
     from the few values at each end (`_smallest`)."""
     n = len(values)
@@ -457,7 +457,7 @@ def near_planes(local: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     for k in range(dims):
         for i in range(n):
             column[i] = local[i, k]
-        low, high = _robust_ends(column)
+        low, high = robust_ends(column)
         for i in range(n):
             near_low[i, k] = abs(local[i, k] - low) <= tol
             near_high[i, k] = abs(local[i, k] - high) <= tol
@@ -608,3 +608,4 @@ def warm_up() -> None:
     near = np.ones((16, 3), np.bool_)
     face_line(points, near, near)
     face_tilts(points, near, near, np.ones((3, 2), np.bool_))
+    robust_ends(points[:, 0].copy())
