@@ -281,6 +281,19 @@ def sphere_spread(points: np.ndarray, centre: np.ndarray, rms: float) -> float:
 
 
 @njit(cache=True)
+def _worst_patch(sums: np.ndarray, counts: np.ndarray, rms: float, sigmas: float,
+                 min_count: int) -> float:
+    """The largest patch mean residual (``sums / counts``) less ``sigmas`` of its standard
+    error (``rms`` over the root of its count), over patches of ``min_count`` points or
+    more; 0 when none is beyond its noise."""
+    best = 0.0
+    for k in range(len(sums)):
+        if counts[k] >= min_count:
+            best = max(best, sums[k] / counts[k] - sigmas * rms / math.sqrt(counts[k]))
+    return best
+
+
+@njit(cache=True)
 def patch_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: float,
                  sigmas: float, min_count: int, cells: int) -> float:
     """The largest mean residual ``|p - c| - r`` of a patch of the sphere's surface, less
@@ -306,11 +319,7 @@ def patch_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: flo
         k = ((2 * face + (1 if sign >= 0.0 else 0)) * cells + iu) * cells + iv
         sums[k] += math.sqrt(dx * dx + dy * dy + dz * dz) - radius
         counts[k] += 1
-    best = 0.0
-    for k in range(patches):
-        if counts[k] >= min_count:
-            best = max(best, sums[k] / counts[k] - sigmas * rms / math.sqrt(counts[k]))
-    return best
+    return _worst_patch(sums, counts, rms, sigmas, min_count)
 
 
 @njit(cache=True)
@@ -398,11 +407,7 @@ def cylinder_misfit(local: np.ndarray, cx: float, cy: float, radius: float, rms:
         iz = min(max(int((local[i, 2] - low) / span * length_cells), 0), length_cells - 1)
         sums[ia * length_cells + iz] += math.sqrt(dx * dx + dy * dy) - radius
         counts[ia * length_cells + iz] += 1
-    best = 0.0
-    for k in range(patches):
-        if counts[k] >= min_count:
-            best = max(best, sums[k] / counts[k] - sigmas * rms / math.sqrt(counts[k]))
-    return best
+    return _worst_patch(sums, counts, rms, sigmas, min_count)
 
 
 @njit(cache=True)
