@@ -35,14 +35,11 @@ from damon_ros.perception.tilted_box import fit_tilted_box
 from damon_ros.perception.tracker_config import TrackerConfig
 
 
-def _smallest_agreed(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
-                     config: TrackerConfig) -> Shape | None:
-    """The smallest whole view's own sphere or cylinder that every camera's points agree
-    with (none beyond it by more than ``face_tolerance_m``: noise), or None. What the
-    intersection of the views gave (:func:`fusion.fuse` keeps the smallest primitive unless
-    the polytope is far smaller, which it was not for balls and poles seen from two sides),
-    without making the polytope."""
-    agreed = _agreed(seen, np.vstack([p for _, _, p, _ in seen]), config)
+def _smallest(agreed: list[Shape]) -> Shape | None:
+    """The smallest of the whole views' own spheres or cylinders that every camera's points
+    agree with (`_agreed`), or None. What the intersection of the views gave
+    (:func:`fusion.fuse` keeps the smallest primitive unless the polytope is far smaller,
+    which it was not for balls and poles seen from two sides), without making the polytope."""
     return min(agreed, key=volume) if agreed else None
 
 
@@ -56,7 +53,7 @@ def _agreed(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]], points: np.n
             if not cut and bool(np.all(contains(shape, points, config.face_tolerance_m)))]
 
 
-def _joint_sphere(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
+def _joint_sphere(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]], points: np.ndarray,
                   config: TrackerConfig, name: str) -> Shape | None:
     """One sphere fitted to every camera's points of a ball, or None when they are not one
     ball's (the fit's residual fails the round test of `shape_fit`). Caps seen from two
@@ -76,23 +73,20 @@ def _joint_sphere(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
     if any(float(np.linalg.norm(centre - s.position)) + radius > s.size[0]
            for _, s, _, cut in seen if not cut):
         return None
-    points = np.vstack([p for _, _, p, _ in seen])
     margin = sphere_margin(points, centre, radius, rms, config, fitted)
     if not np.isfinite(margin):
         return None
     return Shape("sphere", (radius + margin,), centre, name=name)
 
 
-def _joint_cylinder(seen: Sequence[tuple[Camera, Shape, np.ndarray, bool]],
-                    config: TrackerConfig, name: str) -> Shape | None:
-    """One side fitted to every camera's points of a pole (`tight_fit.fit_side`, from the
-    smallest agreed whole view's own cylinder, `_agreed`), or None when they fit no one
-    side or the fit does not lie inside every agreed view's own cylinder (views that
-    disagree). Arcs seen from two sides pin the circle that one arc leaves tied to its
+def _joint_cylinder(points: np.ndarray, whole: list[Shape], config: TrackerConfig,
+                    name: str) -> Shape | None:
+    """One side fitted to every camera's ``points`` of a pole (`tight_fit.fit_side`, from the
+    smallest of ``whole``, the agreed whole views' own cylinders, `_agreed`), or None when
+    they fit no one side or the fit does not lie inside every agreed view's own cylinder
+    (views that disagree). Arcs seen from two sides pin the circle that one arc leaves tied to its
     depth. Its ends are where the agreed views' own cylinders end along its axis (each
     camera's measured end face or silhouette edge: the tighter wins)."""
-    points = np.vstack([p for _, _, p, _ in seen])
-    whole = _agreed(seen, points, config)
     if not whole:
         return None
     start = min(whole, key=volume)
@@ -144,9 +138,13 @@ def joint_fit(views: Sequence[tuple[Camera, Shape, np.ndarray, bool]], config: T
     # became, but its points are the object's: the whole views say what the object is
     whole = {s.kind for _, s, _, cut in seen if not cut}
     if whole == {"sphere"}:
-        return _joint_sphere(seen, config, name) or _smallest_agreed(seen, config)
+        points = np.vstack([p for _, _, p, _ in seen])
+        return _joint_sphere(seen, points, config, name) or _smallest(
+            _agreed(seen, points, config))
     if whole == {"cylinder"}:
-        return _joint_cylinder(seen, config, name) or _smallest_agreed(seen, config)
+        points = np.vstack([p for _, _, p, _ in seen])
+        agreed = _agreed(seen, points, config)  # the joint side's start and ends, or the bound
+        return _joint_cylinder(points, agreed, config, name) or _smallest(agreed)
     if kinds <= {"box", "points"}:
         points, cuts = [(c, p) for c, _, p, _ in seen], [cut for *_, cut in seen]
         fit = fit_box_seen(points, config, name, cuts)

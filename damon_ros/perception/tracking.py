@@ -231,7 +231,8 @@ class _TrackState:
                                                   detection.round)
             if was_still and not self.stillness.still:  # it has just started to move
                 since = self.motion.since_rest(self.stillness.anchor, self.stillness.jitter_m)
-                self.velocity = self.velocity if since is None else since
+                if since is not None:
+                    self.velocity = since
 
     def snapshot(self) -> Track:
         return Track(self.id, self.color, self.shape, self.velocity.copy(), self.last_seen,

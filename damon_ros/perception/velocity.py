@@ -64,7 +64,6 @@ class VelocityWindow:
                    > max(ONSET_SPEED_MPS, ONSET_SHARE * window_speed))
         return onset if started else velocity
 
-
     def since_rest(self, anchor: np.ndarray, jitter_m: float) -> np.ndarray | None:
         """The history restarted where the object was last seen at rest, at ``anchor`` (within
         ``jitter_m``), and the slope of the samples since; None when none was at rest there
