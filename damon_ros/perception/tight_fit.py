@@ -21,7 +21,10 @@ instead, and only what it cannot show is bounded by a prior:
 
 Margins are what the sampling cannot see, not a blanket inflation: a face's own plane is
 measured (the extreme of noisy points lies outside it), a silhouette edge is known to one
-sample spacing on the image plane, stretched by the obliquity of the face it is seen on.
+sample spacing on the image plane, stretched by the obliquity of the face it is seen on,
+beyond the last samples where their rays meet their face's plane
+(:mod:`damon_ros.perception.face_planes`), and the box's turn and yaw against its frame are
+what its faces' planes show together, plus their standard errors.
 """
 
 from __future__ import annotations
@@ -37,6 +40,15 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, project
+from damon_ros.perception.face_planes import (
+    FacePlane,
+    FaceReach,
+    farthest,
+    fit_face_planes,
+    on_faces,
+    turn_bounds,
+    yaw_bound,
+)
 from damon_ros.perception.fit_kernels import (
     circle_refine,
     cylinder_misfit,
@@ -58,7 +70,8 @@ BOX_SHARE = 0.92
 """A blob is a box when at least this share of its points lie on the fitted box's faces."""
 YAW_ERROR_RAD = 0.006
 """Residual yaw error after the face fit (about a third of a degree, several times what depth
-noise leaves on a face of a few hundred points)."""
+noise leaves on a face of a few hundred points), where no side face's plane measures it
+(`face_planes.yaw_bound`), and for a turned box's frame."""
 YAW_NOISE_M = 0.0025
 """Depth noise on a face turns into a yaw error of about this over the face's width."""
 MAX_YAW_ERROR_RAD = 0.06
@@ -66,12 +79,14 @@ MAX_FACE_TILT_RAD = 0.05
 """A face whose points lie on a plane tilted more than this from the box's is no face of an
 upright box (several times what depth noise leaves on a face of a few dozen points)."""
 TILT_SIGMAS = 2.0
-"""An upright box is grown for a tilt up to its faces' measured tilt plus this many standard
-errors of it (`_face_tilts`; each face bounds the tilt, the least bound counts). The side
-camera alone on the held + stress scenes (seed 2106): with the tilt alone a 6 x 6 x 11 cm
-box tilted 3 deg stuck out 0.6-0.9 mm in 2 of 4,879 whole views; with 1, 2 or 3 standard
-errors none did, and the boxes' median excess rose by about 2, 4 and 4.5 points (front
-camera)."""
+"""An upright box is grown for a turn (about x and y: `_turns`; about z: `_skewed`'s yaw
+error) up to what its faces' planes show, pooled, plus this many standard errors of it
+(`face_planes.turn_bounds`, `face_planes.yaw_bound`). The side camera alone on the held +
+stress scenes (seed 2106): with the tilt alone a 6 x 6 x 11 cm box tilted 3 deg stuck out
+0.6-0.9 mm in 2 of 4,879 whole views; with 1, 2 or 3 standard errors of each face's tilt
+none did. Pooled over the faces (two or three pin the turn that one left at ~0.3-1 deg),
+every whole box view of four seeds stayed contained, with one camera, two, or the side
+camera alone, and the boxes' median excess fell by 4-6 points."""
 MIN_FACING = 0.1
 """A face counts as seen only when the camera is at least this sine of an angle off its plane."""
 CUT_END_BAND_M = 0.01
@@ -163,8 +178,12 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
                            upright=True)
     if bound is None:
         return None
-    lo, hi, seen, hidden, ends_by = bound
-    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by, frame_error(face_width))
+    lo, hi, seen, hidden, ends_by, faces = bound
+    # the faces' planes show what yaw error the frame has left; the face width's noise
+    # bounds it where they cannot
+    error = yaw_bound(faces, TILT_SIGMAS)
+    lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by,
+                     frame_error(face_width) if error is None else error)
     centre = axes @ (0.5 * (lo + hi))
     q = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     shape = Shape("box", tuple(hi - lo), centre, q, name=name)
@@ -184,11 +203,12 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     """The box bound of the views' points in a box frame (``axes``: its axes as columns,
     ``local`` the points in it, ``near_low`` / ``near_high`` which lie near its robust
     planes), before the frame's own error is allowed for: ``(lo, hi, seen, hidden,
-    ends_by)``, each axis bounded by a visible face's plane, a silhouette or the class
-    prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which, for
-    `_skewed`), or None when the faces do not make a box. ``occluders``: `fit_box_seen`.
-    ``upright``: the frame is an upright box's, whose faces may show a small tilt
-    (`_tilt_allowance`; a tilted frame allows for its own error)."""
+    ends_by, faces)``, each axis bounded by a visible face's plane, a silhouette or the
+    class prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which,
+    for `_skewed`; ``faces``: the visible faces' fitted planes), or None when the faces do
+    not make a box. ``occluders``: `fit_box_seen`. ``upright``: the frame is an upright
+    box's, whose faces may show a small tilt (`_tilt_allowance`; a tilted frame allows for
+    its own error)."""
     tol = config.face_tolerance_m
     low, high = local.min(axis=0), local.max(axis=0)
     need = max(8, int(FACE_SHARE * len(local)))
@@ -208,6 +228,10 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     tilts, tilt_bounds = _face_tilts(local, near_low, near_high, visible)
     if tilts.max() > MAX_FACE_TILT_RAD:
         return None
+    faces = fit_face_planes(local, near_low, near_high, edge, visible, tol)
+    # an upright box may be turned a little about x and y (`_tilt_allowance`)
+    turns = _turns(faces, tilt_bounds) if upright else None
+    exempt = np.zeros((3, 2), dtype=bool)  # ends that allow for the turn themselves
     margin_face = config.surface_margin_m
     prior = config.max_thickness_m["box"]
     seen, hidden = [], []
@@ -226,21 +250,23 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
             # with the obliquity of the rays there: at a far edge the face is seen more
             # grazingly than on average (the last samples along the axis, 5 % and 3)
             # (several cameras: each one's silhouette bounds the object, the tightest holds)
-            ends = [_silhouette(per_view, local[:, k], k, sign, others)
+            tilted = None if turns is None or k < 2 else (turns, 0.5 * (hi - lo))
+            ends = [_silhouette(per_view, faces, local, k, sign, others, tilted)
                     if not visible[k, side] else None for side, sign in ((0, -1), (1, 1))]
             # only cut views show that silhouette: an occluder or the image border may hide
             # the rest, which the class prior bounds beyond the last point seen there
             cut_ends = [e is not None and not math.isfinite(e[0]) for e in ends]
             if any(cut_ends) and occluders is None:
                 return None
-            ends = [(low[k] - prior, False) if cut and sign < 0 else
-                    (high[k] + prior, False) if cut else e
+            ends = [(low[k] - prior, False, False) if cut and sign < 0 else
+                    (high[k] + prior, False, False) if cut else e
                     for e, cut, sign in zip(ends, cut_ends, (-1, 1), strict=True)]
             lo[k] = lo[k] - margin_face if ends[0] is None else ends[0][0] - margin_face
             hi[k] = hi[k] + margin_face if ends[1] is None else ends[1][0] + margin_face
             if k < 2:
                 ends_by[k] = ["face" if e is None else "corner" if e[1] else "prior"
                               for e in ends]
+            exempt[k] = [e is not None and e[2] for e in ends]
             seen.append(not any(cut_ends))
             hidden.append(prior * sum(cut_ends))
             continue
@@ -258,30 +284,38 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
         seen.append(False)
         hidden.append(extra)
     if upright:
-        lo, hi = _tilt_allowance(lo, hi, tilt_bounds)
-    return lo, hi, seen, hidden, ends_by
+        lo, hi = _tilt_allowance(lo, hi, turns, exempt)
+    return lo, hi, seen, hidden, ends_by, faces
 
 
-def _tilt_allowance(lo: np.ndarray, hi: np.ndarray,
-                    tilts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An upright box's bound grown for the tilt its faces showed (below
-    `MAX_FACE_TILT_RAD`, taken as none by the frame). Turned by a small rotation ``w``, a
-    face across axis ``a`` tilts by the rotation about the other two axes, so ``|w_i|`` is
-    at most the tilt of a face across either other axis (``tilts[a]``, where one was
-    measured: above 0; otherwise the largest tilt seen), and a corner moves along axis ``k``
-    by at most ``|w_i| e_j + |w_j| e_i`` (``e``: the half extents across it). The turn
-    about the vertical is the frame's yaw error, which `_skewed` allows for. A 6 x 6 x 11 cm
-    box tilted 2.6 deg passed as upright and its corners stuck out 0.6 mm beyond the face
-    planes (stress scene S-v0.6-1-s2106-000, in 15 of 60 frames). An upright box's faces
-    show 0.16 deg (median; 90 % below 0.4 deg: held scenes): a fraction of a millimetre."""
-    fallback = float(tilts.max())
-    about = np.array([min([tilts[a] for a in range(3) if a != i and tilts[a] > 0.0],
-                          default=fallback) for i in range(2)] + [0.0])
-    turn = np.tan(about)
+def _turns(faces: list[FacePlane], tilts: np.ndarray) -> np.ndarray:
+    """How far an upright box may be turned about its x and y axes (rad; 0 about z): every
+    face's slopes pooled (`face_planes.turn_bounds`, plus `TILT_SIGMAS` standard errors).
+    Where no plane was fitted, each turn is at most the tilt bound of a face across either
+    other axis (``tilts``, `_face_tilts`, where measured: above 0; otherwise the largest)."""
+    about = turn_bounds(faces, TILT_SIGMAS)
+    if about is None:
+        fallback = float(tilts.max())
+        about = np.array([min([tilts[a] for a in range(3) if a != i and tilts[a] > 0.0],
+                              default=fallback) for i in range(2)] + [0.0])
+    return about
+
+
+def _tilt_allowance(lo: np.ndarray, hi: np.ndarray, turns: np.ndarray,
+                    exempt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An upright box's bound grown for the turn its faces showed (below
+    `MAX_FACE_TILT_RAD`, taken as none by the frame). Turned by ``turns`` about x and y
+    (`_turns`), a corner moves along axis ``k`` by at most ``|w_i| e_j + |w_j| e_i``
+    (``e``: the half extents across it). The turn about the vertical is the frame's yaw
+    error, which `_skewed` allows for. Ends marked ``exempt`` (3 x 2) were bounded with
+    the turn allowed for already. A 6 x 6 x 11 cm box tilted 2.6 deg passed as upright
+    and its corners stuck out 0.6 mm beyond the face planes (stress scene
+    S-v0.6-1-s2106-000, in 15 of 60 frames)."""
+    turn = np.tan(turns)
     half = 0.5 * (hi - lo)
     grow = np.array([turn[i] * half[j] + turn[j] * half[i]
                      for i, j in ((1, 2), (0, 2), (0, 1))])
-    return lo - grow, hi + grow
+    return lo - np.where(exempt[:, 0], 0.0, grow), hi + np.where(exempt[:, 1], 0.0, grow)
 
 
 def _box_frame(points: np.ndarray, yaw: float, tol: float) -> tuple:
@@ -374,7 +408,7 @@ class _BoxView:
         self.mask, self.whole = mask, whole
         self.camera, self.occluders = camera, occluders
         self.reach_px = CUT_REACH_STEPS * config.downsample
-        eye = camera.position @ axes
+        eye = self.eye = camera.position @ axes
         reach = MIN_FACING * float(np.linalg.norm(eye - 0.5 * (low + high)))
         self.facing = np.column_stack([eye < low - reach, eye > high + reach])
         need = max(8, int(FACE_SHARE * np.count_nonzero(mask)))
@@ -410,34 +444,64 @@ class _BoxView:
         return bool(clear.any())
 
 
-def _silhouette(views: list[_BoxView], along: np.ndarray, k: int, sign: int,
-                others: list[int]) -> tuple[float, bool]:
+def _silhouette(views: list[_BoxView], faces: list[FacePlane], local: np.ndarray, k: int,
+                sign: int, others: list[int],
+                tilted: tuple[np.ndarray, np.ndarray] | None = None
+                ) -> tuple[float, bool, bool]:
     """Where the box ends at the ``sign`` end of axis ``k`` when no face there is seen: a
     sample spacing (`_edge`) beyond the last point of a camera that sees a face spanning
     the axis, the tightest of these cameras (each whole silhouette bounds the object), never
-    inside a point any camera saw; infinite when only cut-off views could bound it. And
-    whether that camera saw the top or bottom face (its samples then reach the footprint's
-    corners: `_skewed`)."""
-    extreme = float(np.max(sign * along))
+    inside a point any camera saw; infinite when only cut-off views could bound it. A point
+    counts where its ray meets the face plane it lies on (`face_planes.on_faces`), not at
+    its noisy depth. And whether that camera saw the top or bottom face (its samples then
+    reach the footprint's corners: `_skewed`), and whether the bound allows for the box's
+    turn itself.
+
+    ``tilted`` (an upright box's top or bottom: its turn bounds and half extents): each side
+    face alone bounds the end, with what the turn may put the box's farthest corner beyond
+    that face's own (`_side_face_end`); the bound then needs no tilt allowance."""
+    along = local[:, k]
+    reach = np.empty(len(local))
+    per_face = [on_faces(faces, w.eye, w.facing, local, w.mask, k, sign) for w in views]
+    for w, reaches in zip(views, per_face, strict=True):
+        reach[w.mask] = farthest(reaches, local, w.mask, k, sign)
+    extreme = float(np.max(reach))
     bounds = []
-    for w in views:
+    for w, reaches in zip(views, per_face, strict=True):
         spans = [j for j in range(3) if j != k and w.visible[j].any()]
-        if spans and np.any(w.mask) and w.bounds_end(along[w.mask], sign):
-            mine = along[w.mask]
-            bounds.append((float(np.max(sign * mine))
-                           + _edge(w.cosines, mine, spans, w.delta, sign),
-                           bool(w.visible[2].any())))
+        if not spans or not np.any(w.mask) or not w.bounds_end(along[w.mask], sign):
+            continue
+        if tilted is not None:
+            bounds += [(_side_face_end(f, w, *tilted), False, True) for f in reaches]
+            continue
+        mine = reach[w.mask]
+        bounds.append((float(np.max(mine)) + _edge(w.cosines, mine, spans, w.delta),
+                       bool(w.visible[2].any()), False))
     if not bounds and not all(w.whole for w in views):
-        return sign * math.inf, False
+        return sign * math.inf, False, False
     if not bounds:  # no single camera saw a spanning face: all of them together did
         both = np.vstack([w.cosines for w in views])
         order = np.concatenate([np.flatnonzero(w.mask) for w in views])
         cosines = np.empty_like(both)
         cosines[order] = both
-        bounds.append((extreme + _edge(cosines, along, others,
-                                       max(w.delta for w in views), sign), False))
-    bound, corner = min(bounds)
-    return sign * max(bound, extreme), corner
+        bounds.append((extreme + _edge(cosines, reach, others, max(w.delta for w in views)),
+                       False, False))
+    bound, corner, turned = min(bounds)
+    return sign * max(bound, extreme), corner, turned
+
+
+def _side_face_end(face: FaceReach, view: _BoxView, turns: np.ndarray,
+                   half: np.ndarray) -> float:
+    """How far the top or bottom of an upright box reaches (toward the end ``face.reach``
+    measures) by one side face's silhouette: its last sample, a sample spacing beyond it
+    (`_edge`), and twice the turn about the face's other horizontal axis times the half
+    extent across the face. The face spans the height, and the turn about its normal
+    slants it with the box, but a turn about the other horizontal axis lifts the face
+    across from it by that much relative to this one."""
+    j = face.plane.axis
+    slant = 2.0 * math.tan(float(turns[1 - j])) * float(half[j])
+    return (float(np.max(face.reach)) + slant
+            + _edge(view.cosines[face.index], face.reach, [j], view.delta))
 
 
 def on_other_faces(near_low: np.ndarray, near_high: np.ndarray) -> np.ndarray:
@@ -468,13 +532,13 @@ def _face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     return low, high
 
 
-def _edge(cosines: np.ndarray, along: np.ndarray, faces: list[int], delta: float,
-          sign: int) -> float:
-    """How far an edge at the ``sign`` end of ``along`` lies beyond the last sample: one
-    sample spacing over the cosine of the most squarely seen face of ``faces`` (the axes of
-    the visible faces that span it), at the most grazing of the last samples there."""
-    count = min(max(3, len(along) // 20), len(along))
-    last = np.argpartition(sign * along, len(along) - count)[-count:]  # (a set: no sort)
+def _edge(cosines: np.ndarray, reach: np.ndarray, faces: list[int], delta: float) -> float:
+    """How far an edge lies beyond the farthest of samples that reach ``reach`` toward it:
+    one sample spacing ``delta`` over the cosine of the most squarely seen face of
+    ``faces`` (the axes of the visible faces that span it), at the most grazing of the last
+    samples (5 % and at least 3)."""
+    count = min(max(3, len(reach) // 20), len(reach))
+    last = np.argpartition(reach, len(reach) - count)[-count:]  # (a set: no sort)
     best = max(float(cosines[last, j].min()) for j in faces)
     return delta / max(best, MIN_FACING)
 
@@ -487,8 +551,9 @@ def _face_tilts(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     `MAX_FACE_TILT_RAD` the box is no box of this frame (a small tilted box puts enough of
     its points within the face tolerance of upright planes to pass as one, and its hidden
     corners then stick out of the upright bound); below it, `_tilt_allowance` grows the
-    bound by what the tilt may be. (The tilt alone was too little: a 6 cm face's error is
-    0.6-1.3 deg, and a box tilted 3 deg, measured below that, stuck out 0.9 mm.)"""
+    bound by what the turn may be (`_turns`: these bounds only where no face plane was
+    fitted). (The tilt alone was too little: a 6 cm face's error is 0.6-1.3 deg, and a box
+    tilted 3 deg, measured below that, stuck out 0.9 mm.)"""
     cosines, errors = face_tilts(np.ascontiguousarray(local), near_low, near_high, visible)
     tilts = np.arccos(np.minimum(cosines, 1.0))  # unmeasured faces give 1.0: 0 rad, 0 error
     return tilts.max(axis=1), (tilts + TILT_SIGMAS * errors).max(axis=1)

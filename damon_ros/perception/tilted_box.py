@@ -77,7 +77,7 @@ def fit_tilted_box(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerCo
     bound = bound_in_frame(views, cut, axes, local, near_low, near_high, config)
     if bound is None:
         return None
-    lo, hi, seen, hidden, _ = bound
+    lo, hi, seen, hidden, *_ = bound
     half = 0.5 * (hi - lo)
     error = frame_error(float(np.sort(hi - lo)[1]))  # the narrowest face's wider side
     # a face turned by the error stands out of its fitted plane (through the middle of its
