@@ -8,6 +8,11 @@ last samples' noisy positions carried their depth noise outward (2 mm along a ra
 row of a front face lay ~1 mm below the true bottom, and the bound a sample spacing below
 that); the last samples' rays met with the face's plane place them to a fraction of a
 millimetre, and the sample spacing beyond them is then all that is left to allow.
+
+The same planes say how far the box is turned against its frame. Each face's slopes measure
+the turn about two axes; pooled over the two or three faces in view (`turn_bounds`,
+`yaw_bound`), they pin it more tightly than any one face's tilt did (0.2-1.9 deg on upright
+boxes).
 """
 
 from __future__ import annotations
