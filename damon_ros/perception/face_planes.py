@@ -21,6 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from damon_ros.perception.fit_kernels import face_plane
+
 PLANE_SIGMAS = 4.0
 """A face's fitted plane is trusted to this many standard errors at its worst-placed point
 (4: a one-sided normal tail of 3e-5, as for balls and poles)."""
@@ -47,34 +49,34 @@ def fit_face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarr
     """The planes of the visible faces (``visible[k, side]``) of the box-frame points
     ``local``, each fitted by least squares to its own points (those near no other face's
     plane, ``edge``, where it has `MIN_FACE_POINTS`) within ``tol`` of their median: a
-    tilted face (a box turned a fraction of a degree off upright) keeps its tilt."""
+    tilted face (a box turned a fraction of a degree off upright) keeps its tilt. Compiled
+    (`fit_kernels.face_plane`)."""
     planes = []
+    points = np.ascontiguousarray(local, dtype=float)
     for k in range(3):
-        others = [j for j in range(3) if j != k]
         for side, near in ((0, near_low), (1, near_high)):
             if not visible[k, side]:
                 continue
-            own = near[:, k] & ~edge[:, k]
+            on = np.ascontiguousarray(near[:, k])
+            own = on & ~edge[:, k]
             if np.count_nonzero(own) < MIN_FACE_POINTS:
-                own = near[:, k]
-            values = local[own, k]
-            keep = np.abs(values - np.median(values)) <= tol
-            if np.count_nonzero(keep) < MIN_FACE_POINTS:
-                continue
-            design = np.column_stack([np.ones(np.count_nonzero(keep)),
-                                      local[own][keep][:, others]])
-            coef, *_ = np.linalg.lstsq(design, values[keep], rcond=None)
-            residual = values[keep] - design @ coef
-            dof = max(len(residual) - 3, 1)
-            sigma = float(np.sqrt(residual @ residual / dof))
-            inverse = np.linalg.pinv(design.T @ design)
-            at = np.column_stack([np.ones(np.count_nonzero(near[:, k])),
-                                  local[near[:, k]][:, others]])
-            leverage = float(np.max(np.einsum("ij,jk,ik->i", at, inverse, at)))
-            planes.append(FacePlane(k, side, coef, PLANE_SIGMAS * sigma * float(np.sqrt(leverage)),
-                                    near[:, k].copy(),
-                                    sigma * np.sqrt(np.diag(inverse)[1:])))
+                own = on
+            coef, slope_se, offset_se, ok = face_plane(points, own, on, k, tol)
+            if ok:
+                planes.append(FacePlane(k, side, coef, PLANE_SIGMAS * offset_se, on, slope_se))
     return planes
+
+
+class Settled(NamedTuple):
+    """A view's points near one face plane moved onto it along their rays: which (``index``
+    into the view's points), where they land (``at``, N x 3, NaN where a ray meets the
+    plane at grazing incidence or behind the camera) and how far the plane's error may
+    move them along each axis (``spread``, N x 3)."""
+
+    plane: FacePlane
+    index: np.ndarray
+    at: np.ndarray
+    spread: np.ndarray
 
 
 class FaceReach(NamedTuple):
@@ -138,19 +140,16 @@ def yaw_bound(planes: list[FacePlane], sigmas: float) -> float | None:
     return float(np.arctan(abs(total / weight))) + sigmas / float(np.sqrt(weight))
 
 
-def on_faces(planes: list[FacePlane], eye: np.ndarray, facing: np.ndarray, local: np.ndarray,
-             mask: np.ndarray, k: int, sign: int) -> list[FaceReach]:
-    """Per face plane not across axis ``k`` that this camera faces (``facing[axis, side]``;
-    its points near another face's plane are the rim of a face it sees): how far
-    (``sign`` times the coordinate along ``k``) each of the points ``local[mask]`` near it
-    (seen from ``eye``, the camera's centre in the box frame) may reach once moved along
-    its ray onto the plane, the plane's error included. A ray meeting the plane at grazing
-    incidence (or behind the camera) keeps the point's measured coordinate."""
-    points = local[mask]
+def settle(planes: list[FacePlane], eye: np.ndarray, facing: np.ndarray, mask: np.ndarray,
+           points: np.ndarray) -> list[Settled]:
+    """A view's points (``points``: ``local[mask]``, seen from ``eye``, the camera's centre
+    in the box frame) moved along their rays onto each face plane they lie near, for each
+    plane of a face this camera faces (``facing[axis, side]``; its points near another
+    face's plane are the rim of a face it sees)."""
     out = []
     for plane in planes:
         j = plane.axis
-        if j == k or not facing[j, plane.side]:
+        if not facing[j, plane.side]:
             continue
         index = np.flatnonzero(plane.near[mask])
         if not len(index):
@@ -162,23 +161,38 @@ def on_faces(planes: list[FacePlane], eye: np.ndarray, facing: np.ndarray, local
         offset = plane.coef[0] + plane.coef[1] * eye[u] + plane.coef[2] * eye[w] - eye[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = offset / across
-            # the plane's offset error moves the point along its ray by error / |across|
-            # rays, so along k by error * |ray_k / across|
-            reach = sign * (eye[k] + t * ray[:, k]) + plane.error * np.abs(ray[:, k] / across)
-        measured = sign * points[index, k]
-        out.append(FaceReach(plane, index, np.where(np.isfinite(reach) & (t > 0.0), reach,
-                                                    measured)))
+            at = eye + t[:, None] * ray
+            # the plane's offset error moves a point along its ray by error / |across| rays
+            spread = plane.error * np.abs(ray / across[:, None])
+        at[~(np.isfinite(t) & (t > 0.0))] = np.nan
+        out.append(Settled(plane, index, at, spread))
     return out
 
 
-def farthest(reaches: list[FaceReach], local: np.ndarray, mask: np.ndarray, k: int,
-             sign: int) -> np.ndarray:
-    """How far each of the points ``local[mask]`` may reach (``sign`` times its coordinate
-    along ``k``): the largest over the faces it lies near (it lies on one of them), and no
+def on_faces(settled: list[Settled], points: np.ndarray, k: int, sign: int) -> list[FaceReach]:
+    """Per settled face plane (`settle`) not across axis ``k``: how far (``sign`` times the
+    coordinate along ``k``) each of the view's points near it (``points``) may reach once
+    on the plane, the plane's error included; a point whose ray misses the plane keeps its
+    measured coordinate."""
+    out = []
+    for face in settled:
+        if face.plane.axis == k:
+            continue
+        with np.errstate(invalid="ignore"):
+            reach = sign * face.at[:, k] + face.spread[:, k]
+        measured = sign * points[face.index, k]
+        out.append(FaceReach(face.plane, face.index,
+                             np.where(np.isfinite(reach), reach, measured)))
+    return out
+
+
+def farthest(reaches: list[FaceReach], points: np.ndarray, k: int, sign: int) -> np.ndarray:
+    """How far each of a view's ``points`` may reach (``sign`` times its coordinate along
+    ``k``): the largest over the faces it lies near (it lies on one of them), and no
     farther than it was measured. Near an edge a point's ray may meet the other face's
     plane at grazing incidence, where that plane's error along the ray is several times
     the depth noise: the measurement is then the closer estimate."""
-    measured = sign * local[mask, k]
+    measured = sign * points[:, k]
     best = np.full(len(measured), -np.inf)
     for face in reaches:
         best[face.index] = np.maximum(best[face.index], face.reach)

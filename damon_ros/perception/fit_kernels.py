@@ -594,6 +594,70 @@ def face_tilts(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
     return out, errors
 
 
+@njit(cache=True)
+def face_plane(local: np.ndarray, own: np.ndarray, near: np.ndarray, k: int,
+               tol: float) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The least-squares plane ``x_k = c0 + c1 x_u + c2 x_w`` (``u``, ``w``: the other two
+    axes in order) of the points ``own`` within ``tol`` of their median along ``k``: its
+    coefficients, the standard errors of ``c1`` and ``c2``, and its offset's standard
+    error at the worst-placed of the points ``near`` (the largest leverage); ``ok`` False
+    when fewer than 8 points are kept or they fix no plane. numpy's fit (lstsq, pinv,
+    einsum) cost ~0.7 ms a box."""
+    u = 1 if k == 0 else 0
+    w = 1 if k == 2 else 2
+    n = local.shape[0]
+    values = np.empty(n)
+    m = 0
+    for i in range(n):
+        if own[i]:
+            values[m] = local[i, k]
+            m += 1
+    coef, se = np.zeros(3), np.zeros(2)
+    if m < 8:
+        return coef, se, 0.0, False
+    middle = np.median(values[:m])
+    normal = np.zeros((3, 3))
+    right = np.zeros(3)
+    row = np.empty(3)
+    kept = 0
+    for i in range(n):
+        if own[i] and abs(local[i, k] - middle) <= tol:
+            row[0], row[1], row[2] = 1.0, local[i, u], local[i, w]
+            _accumulate(normal, right, row, local[i, k])
+            kept += 1
+    if kept < 8:
+        return coef, se, 0.0, False
+    coef, ok = _solve(normal, right)
+    if not ok:
+        return coef, se, 0.0, False
+    rss = 0.0
+    for i in range(n):
+        if own[i] and abs(local[i, k] - middle) <= tol:
+            r = local[i, k] - coef[0] - coef[1] * local[i, u] - coef[2] * local[i, w]
+            rss += r * r
+    sigma = math.sqrt(rss / max(kept - 3, 1))
+    inverse = np.empty((3, 3))
+    for j in range(3):
+        unit = np.zeros(3)
+        unit[j] = 1.0
+        column, ok = _solve(normal, unit)
+        if not ok:
+            return coef, se, 0.0, False
+        inverse[:, j] = column
+    se[0] = sigma * math.sqrt(max(inverse[1, 1], 0.0))
+    se[1] = sigma * math.sqrt(max(inverse[2, 2], 0.0))
+    worst = 0.0
+    for i in range(n):
+        if near[i]:
+            row[0], row[1], row[2] = 1.0, local[i, u], local[i, w]
+            q = 0.0
+            for a in range(3):
+                for b in range(3):
+                    q += row[a] * inverse[a, b] * row[b]
+            worst = max(worst, q)
+    return coef, se, sigma * math.sqrt(worst), True
+
+
 def warm_up() -> None:
     """Compile (or load from numba's disk cache) every kernel now: a first compile takes
     ~10 s, which must not fall on a tracker's first frame."""
@@ -613,4 +677,5 @@ def warm_up() -> None:
     near = np.ones((16, 3), np.bool_)
     face_line(points, near, near)
     face_tilts(points, near, near, np.ones((3, 2), np.bool_))
+    face_plane(points, near[:, 0].copy(), near[:, 0].copy(), 0, 10.0)
     robust_ends(points[:, 0].copy())

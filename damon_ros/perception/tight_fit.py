@@ -43,9 +43,11 @@ from damon_ros.perception.camera import Camera, project
 from damon_ros.perception.face_planes import (
     FacePlane,
     FaceReach,
+    Settled,
     farthest,
     fit_face_planes,
     on_faces,
+    settle,
     turn_bounds,
     yaw_bound,
 )
@@ -229,6 +231,8 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     if tilts.max() > MAX_FACE_TILT_RAD:
         return None
     faces = fit_face_planes(local, near_low, near_high, edge, visible, tol)
+    for w in per_view:
+        w.settled = settle(faces, w.eye, w.facing, w.mask, w.local)
     # an upright box may be turned a little about x and y (`_tilt_allowance`)
     turns = _turns(faces, tilt_bounds) if upright else None
     exempt = np.zeros((3, 2), dtype=bool)  # ends that allow for the turn themselves
@@ -251,7 +255,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
             # grazingly than on average (the last samples along the axis, 5 % and 3)
             # (several cameras: each one's silhouette bounds the object, the tightest holds)
             tilted = None if turns is None or k < 2 else (turns, 0.5 * (hi - lo))
-            ends = [_silhouette(per_view, faces, local, k, sign, others, tilted)
+            ends = [_silhouette(per_view, local, k, sign, others, tilted)
                     if not visible[k, side] else None for side, sign in ((0, -1), (1, 1))]
             # only cut views show that silhouette: an occluder or the image border may hide
             # the rest, which the class prior bounds beyond the last point seen there
@@ -414,7 +418,9 @@ class _BoxView:
         need = max(8, int(FACE_SHARE * np.count_nonzero(mask)))
         self.visible = self.facing & np.column_stack(
             [near_low[mask].sum(axis=0) >= need, near_high[mask].sum(axis=0) >= need])
-        points = self.points = local[mask] @ axes.T
+        self.local = local[mask]
+        self.settled: list[Settled] = []  # its points on the face planes (`bound_in_frame`)
+        points = self.points = self.local @ axes.T
         self.delta = spacing_m(camera, config, float(np.max((points - camera.position)
                                                             @ camera.rotation[:, 2])))
         rays = points - camera.position
@@ -444,8 +450,8 @@ class _BoxView:
         return bool(clear.any())
 
 
-def _silhouette(views: list[_BoxView], faces: list[FacePlane], local: np.ndarray, k: int,
-                sign: int, others: list[int],
+def _silhouette(views: list[_BoxView], local: np.ndarray, k: int, sign: int,
+                others: list[int],
                 tilted: tuple[np.ndarray, np.ndarray] | None = None
                 ) -> tuple[float, bool, bool]:
     """Where the box ends at the ``sign`` end of axis ``k`` when no face there is seen: a
@@ -462,9 +468,9 @@ def _silhouette(views: list[_BoxView], faces: list[FacePlane], local: np.ndarray
     that face's own (`_side_face_end`); the bound then needs no tilt allowance."""
     along = local[:, k]
     reach = np.empty(len(local))
-    per_face = [on_faces(faces, w.eye, w.facing, local, w.mask, k, sign) for w in views]
+    per_face = [on_faces(w.settled, w.local, k, sign) for w in views]
     for w, reaches in zip(views, per_face, strict=True):
-        reach[w.mask] = farthest(reaches, local, w.mask, k, sign)
+        reach[w.mask] = farthest(reaches, w.local, k, sign)
     extreme = float(np.max(reach))
     bounds = []
     for w, reaches in zip(views, per_face, strict=True):

@@ -7,7 +7,13 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core import shapes
 from damon_ros.core.shapes import Shape
-from damon_ros.perception.face_planes import farthest, fit_face_planes, on_faces, turn_bounds
+from damon_ros.perception.face_planes import (
+    farthest,
+    fit_face_planes,
+    on_faces,
+    settle,
+    turn_bounds,
+)
 from damon_ros.perception.fit_kernels import near_planes
 from damon_ros.perception.tight_fit import on_other_faces
 
@@ -48,7 +54,7 @@ def test_points_met_with_their_face_planes_reach_no_short_of_the_truth_and_not_f
     planes, visible = _planes(noisy)
     assert visible[0, 1] and visible[1, 1] and visible[2, 1] and not visible[2, 0]
     everyone = np.ones(len(noisy), dtype=bool)
-    reaches = on_faces(planes, EYE, visible, noisy, everyone, 2, -1)
+    reaches = on_faces(settle(planes, EYE, visible, everyone, noisy), noisy, 2, -1)
     assert sorted(f.plane.axis for f in reaches) == [0, 1]  # the top is across the axis
     best = np.full(len(noisy), -np.inf)
     for face in reaches:
@@ -58,7 +64,7 @@ def test_points_met_with_their_face_planes_reach_no_short_of_the_truth_and_not_f
     assert np.count_nonzero(placed) > 0.95 * np.count_nonzero(side) > 1000
     assert np.all(best[placed] >= -true[placed, 2])
     last = float(np.max(-true[side, 2]))  # the lowest sample (a sample above the edge)
-    reach = farthest(reaches, noisy, everyone, 2, -1)
+    reach = farthest(reaches, noisy, 2, -1)
     assert 0.0 <= float(np.max(reach)) - last < 0.0005
     assert float(np.max(-noisy[:, 2])) - last > 0.001
 

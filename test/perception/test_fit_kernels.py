@@ -12,6 +12,7 @@ from damon_ros.perception.fit_kernels import (
     cylinder_misfit,
     cylinder_refine,
     cylinder_spread,
+    face_plane,
     face_tilts,
     near_planes,
     patch_misfit,
@@ -197,3 +198,39 @@ def test_a_tilted_faces_tilt_and_its_standard_error():
     assert abs(measured - tilt) < 3.0 * errors[0, 1]
     assert 0.002 < errors[0, 1] < 0.005  # ~ 1.5 mm / (sqrt(600) * 1.7 cm): 0.0036
     assert cosines[1, 0] == 1.0 and errors[1, 0] == 0.0
+
+
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_a_face_plane_is_numpys_least_squares_fit(k):
+    """`face_plane`: the plane through a face's own points within the tolerance of their
+    median, its slopes' standard errors and its offset's at the worst of the points near it,
+    against numpy's lstsq and the covariance of its solution; an outlier beyond the
+    tolerance is left out, and too few points fix nothing."""
+    rng = np.random.default_rng(k)
+    n = 400
+    others = [a for a in range(3) if a != k]
+    local = np.empty((n, 3))
+    local[:, others] = rng.uniform(-0.05, 0.05, (n, 2))
+    local[:, k] = 0.1 + 0.02 * local[:, others[0]] - 0.01 * local[:, others[1]] \
+        + rng.normal(0.0, 0.002, n)
+    local[0, k] += 0.05  # beyond the tolerance
+    own = np.ones(n, np.bool_)
+    near = own.copy()
+    coef, slope_se, offset_se, ok = face_plane(local, own, near, k, 0.008)
+    kept = np.abs(local[:, k] - np.median(local[:, k])) <= 0.008
+    assert not kept[0]
+    design = np.column_stack([np.ones(np.count_nonzero(kept)), local[kept][:, others]])
+    expected, *_ = np.linalg.lstsq(design, local[kept, k], rcond=None)
+    residual = local[kept, k] - design @ expected
+    sigma = math.sqrt(residual @ residual / (len(residual) - 3))
+    inverse = np.linalg.inv(design.T @ design)
+    at = np.column_stack([np.ones(n), local[:, others]])
+    worst = np.max(np.einsum("ij,jk,ik->i", at, inverse, at))
+    assert ok
+    assert np.allclose(coef, expected, atol=1e-12)
+    assert np.allclose(slope_se, sigma * np.sqrt(np.diag(inverse)[1:]), rtol=1e-9)
+    assert offset_se == pytest.approx(sigma * math.sqrt(worst), rel=1e-9)
+    assert abs(coef[1] - 0.02) < 4 * slope_se[0] and abs(coef[2] + 0.01) < 4 * slope_se[1]
+    few = np.zeros(n, np.bool_)
+    few[:7] = True
+    assert not face_plane(local, few, near, k, 0.008)[3]
