@@ -34,7 +34,8 @@ class FacePlane(NamedTuple):
     box frame: its points' coordinate along ``axis`` is ``coef[0] + coef[1] * u + coef[2] *
     w`` (``u``, ``w``: the other two axes in order), ``error`` the plane's offset error
     (m, `PLANE_SIGMAS` standard errors) at the worst-placed of ``near`` (the points near its
-    plane, over all points), ``slope_se`` the standard errors of ``coef[1:]``."""
+    plane, over all points), ``slope_se`` the standard errors of ``coef[1:]``, ``span``
+    the extent of its own points along ``u`` and ``w``."""
 
     axis: int
     side: int
@@ -42,6 +43,7 @@ class FacePlane(NamedTuple):
     error: float
     near: np.ndarray
     slope_se: np.ndarray
+    span: np.ndarray
 
 
 def fit_face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarray,
@@ -63,8 +65,19 @@ def fit_face_planes(local: np.ndarray, near_low: np.ndarray, near_high: np.ndarr
                 own = on
             coef, slope_se, offset_se, ok = face_plane(points, own, on, k, tol)
             if ok:
-                planes.append(FacePlane(k, side, coef, PLANE_SIGMAS * offset_se, on, slope_se))
+                span = np.ptp(points[own][:, [a for a in range(3) if a != k]], axis=0)
+                planes.append(FacePlane(k, side, coef, PLANE_SIGMAS * offset_se, on, slope_se,
+                                        span))
     return planes
+
+
+def trusted(planes: list[FacePlane], tol: float) -> bool:
+    """Whether every plane's slopes can be taken as measured: a face slanted against its
+    frame by more than half the face tolerance over its extent has points beyond the
+    tolerance band that picked it (`fit_kernels.near_planes`), and the fit to the rest
+    flattens the slant (a frame forced 2.3 deg off a 24 cm face: the yaw read was too
+    small, and the box's far corner stuck out)."""
+    return all(float(np.abs(p.coef[1:]) @ p.span) <= 0.5 * tol for p in planes)
 
 
 class Settled(NamedTuple):

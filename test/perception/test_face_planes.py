@@ -12,6 +12,7 @@ from damon_ros.perception.face_planes import (
     fit_face_planes,
     on_faces,
     settle,
+    trusted,
     turn_bounds,
 )
 from damon_ros.perception.fit_kernels import near_planes
@@ -87,3 +88,14 @@ def test_the_faces_pooled_show_the_turn_of_a_box_about_each_horizontal_axis():
 
 def test_no_face_plane_means_no_turn_bound():
     assert turn_bounds([], 2.0) is None
+
+
+def test_a_slant_the_face_band_cuts_is_not_taken_as_measured():
+    """A frame 3 deg off a 20 cm face: the band of the face tolerance around its robust
+    plane holds only part of the face, and the fit to that part reads a flatter slant. Such
+    planes are not trusted (`trusted`), so the turn and yaw fall back to their wider bounds;
+    in the true frame they are."""
+    noisy, _ = _seen(Rotation.from_euler("z", 3.0, degrees=True), 0.002, seed=3)
+    assert not trusted(_planes(noisy)[0], TOL)
+    noisy, _ = _seen(Rotation.identity(), 0.002, seed=3)
+    assert trusted(_planes(noisy)[0], TOL)
