@@ -294,7 +294,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     yaw = None if turns is None or not trusted(faces, tol) else yaw_bound(faces, TILT_SIGMAS)
     if yaw is not None:
         turned = np.array([turns[0], turns[1], yaw])
-        _side_ends(per_view, local, lo, hi, turned, silhouettes, ends_by, exempt,
+        _side_ends(per_view, local, lo, hi, turned, visible, silhouettes, ends_by, exempt,
                    margin_face)
     if upright:
         lo, hi = _tilt_allowance(lo, hi, turns, exempt)
@@ -302,41 +302,30 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
 
 
 def _side_ends(views: list[_BoxView], local: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-               turns: np.ndarray, silhouettes: np.ndarray, ends_by: list[list[str]],
-               exempt: np.ndarray, margin: float) -> None:
+               turns: np.ndarray, visible: np.ndarray, silhouettes: np.ndarray,
+               ends_by: list[list[str]], exempt: np.ndarray, margin: float) -> None:
     """An upright box's silhouette ends across the footprint (``silhouettes[k]``, k = x, y)
-    bounded again by each face that spans them alone (`_side_face_end`: its last sample,
-    a sample spacing and what the turn ``turns`` (about x, y and z) may put the box's
-    farthest corner beyond that face's), where that is tighter: ``lo`` and ``hi`` change
-    in place, and such an end then needs neither the yaw skew (``ends_by`` "corner") nor
-    the tilt allowance (``exempt``). The bound from all the points at once took the
-    farthest point of any face and needed both allowances; a side face seen squarely
-    bounds such an end more tightly on its own than a top face's far edge seen at grazing
-    incidence (one camera, held scenes of seed 2207: the median back side 12.7 -> 11.7 mm
-    and the far side 8.2 -> 6.2 mm beyond the box)."""
+    bounded again by each face that spans them alone (`_silhouette` with the turn
+    ``turns`` about x, y and z: `_side_face_end`), where that is tighter: ``lo`` and ``hi``
+    change in place, and such an end then needs neither the yaw skew (``ends_by``
+    "corner") nor the tilt allowance (``exempt``). The bound from all the points at once
+    took the farthest point of any face and needed both allowances; a side face seen
+    squarely bounds such an end more tightly on its own than a top face's far edge seen at
+    grazing incidence (one camera, held scenes of seed 2207: the median back side 12.7 ->
+    11.7 mm and the far side 8.2 -> 6.2 mm beyond the box)."""
     half = 0.5 * (hi - lo)
     for k in range(2):
-        along = local[:, k]
+        others = [j for j in range(3) if j != k and visible[j].any()]
         for side, sign in ((0, -1), (1, 1)):
             if not silhouettes[k, side]:
                 continue
-            best, extreme = math.inf, -math.inf
-            for w in views:
-                if not np.any(w.mask):
-                    continue
-                reaches = on_faces(w.settled, w.local, k, sign)
-                extreme = max(extreme, float(np.max(farthest(reaches, w.local, k, sign))))
-                if reaches and w.bounds_end(along[w.mask], sign):
-                    best = min([best] + [_side_face_end(f, w, k, turns, half)
-                                         for f in reaches
-                                         if w.bounds_end(sign * f.reach, sign, f.index)])
-            if not math.isfinite(best):
+            end, _, turned = _silhouette(views, local, k, sign, others, (turns, half))
+            if not turned:
                 continue
-            end = max(best, extreme) + margin
-            if side == 1 and end < hi[k]:
-                hi[k] = end
-            elif side == 0 and -end > lo[k]:
-                lo[k] = -end
+            if side == 1 and end + margin < hi[k]:
+                hi[k] = end + margin
+            elif side == 0 and end - margin > lo[k]:
+                lo[k] = end - margin
             else:
                 continue
             ends_by[k][side] = "corner"
@@ -519,9 +508,10 @@ def _silhouette(views: list[_BoxView], local: np.ndarray, k: int, sign: int,
     reach the footprint's corners: `_skewed`), and whether the bound allows for the box's
     turn itself.
 
-    ``tilted`` (an upright box's top or bottom: its turn bounds and half extents): each side
-    face alone bounds the end, with what the turn may put the box's farthest corner beyond
-    that face's own (`_side_face_end`); the bound then needs no tilt allowance."""
+    ``tilted`` (an upright box's turn bounds about x, y and z, and its half extents): each
+    face that spans the axis alone bounds the end, with what the turn may put the box's
+    farthest corner beyond that face's own (`_side_face_end`); the bound then needs no
+    tilt allowance (nor, across the footprint, yaw skew)."""
     along = local[:, k]
     reach = np.empty(len(local))
     per_face = [on_faces(w.settled, w.local, k, sign) for w in views]
