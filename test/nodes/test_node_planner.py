@@ -112,9 +112,21 @@ class Cell:
         still = np.max(np.abs(self.states.last.velocity)) < 0.01
         return still and float(np.linalg.norm(position - goal[0])) < tolerance
 
-    def reach(self, goal, timeout_s: float = 25.0) -> bool:
-        self.goal_pub.publish(goal_msg(*goal))
-        return self.ros.spin_until(lambda: self.at(goal), timeout_s)
+    def reach(self, goal, timeout_s: float = 25.0, resend_s: float = 3.0) -> bool:
+        """Send ``goal`` and wait until the arm rests there. A goal the planner did not get
+        (the topic is volatile: right after a node's restart, under load, the test's
+        publisher may not be matched with the new subscription yet, and the one message is
+        lost) is sent again while the arm has not moved, every ``resend_s``."""
+        deadline = time.monotonic() + timeout_s
+        start = self.q()
+        while True:
+            self.goal_pub.publish(goal_msg(*goal))
+            left = deadline - time.monotonic()
+            if self.ros.spin_until(lambda: self.at(goal) or self.moving(), min(resend_s, left)):
+                break
+            if time.monotonic() >= deadline or np.max(np.abs(self.q() - start)) > 0.01:
+                return self.at(goal)
+        return self.ros.spin_until(lambda: self.at(goal), max(0.0, deadline - time.monotonic()))
 
     def moving(self) -> bool:
         return np.max(np.abs(self.states.last.velocity)) > 0.05
