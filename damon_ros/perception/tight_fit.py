@@ -181,10 +181,9 @@ def fit_box_seen(views: Sequence[tuple[Camera, np.ndarray]], config: TrackerConf
                            upright=True)
     if bound is None:
         return None
-    lo, hi, seen, hidden, ends_by, faces = bound
+    lo, hi, seen, hidden, ends_by, error = bound
     # the faces' planes show what yaw error the frame has left; the face width's noise
     # bounds it where they cannot
-    error = yaw_bound(faces, TILT_SIGMAS) if trusted(faces, tol) else None
     lo, hi = _skewed(local, near_low, near_high, lo, hi, ends_by,
                      frame_error(face_width) if error is None else error)
     centre = axes @ (0.5 * (lo + hi))
@@ -206,9 +205,10 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     """The box bound of the views' points in a box frame (``axes``: its axes as columns,
     ``local`` the points in it, ``near_low`` / ``near_high`` which lie near its robust
     planes), before the frame's own error is allowed for: ``(lo, hi, seen, hidden,
-    ends_by, faces)``, each axis bounded by a visible face's plane, a silhouette or the
+    ends_by, yaw)``, each axis bounded by a visible face's plane, a silhouette or the
     class prior (`fit_box_seen`; ``ends_by[k][side]`` for the horizontal axes says which,
-    for `_skewed`; ``faces``: the visible faces' fitted planes), or None when the faces do
+    for `_skewed`; ``yaw``: how far an upright frame may be turned about the vertical, as
+    its faces' planes show it, `face_planes.yaw_bound`, or None), or None when the faces do
     not make a box. ``occluders``: `fit_box_seen`. ``upright``: the frame is an upright
     box's, whose faces may show a small tilt (`_tilt_allowance`; a tilted frame allows for
     its own error)."""
@@ -235,7 +235,8 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     for w in per_view:
         w.settled = settle(faces, w.eye, w.facing, w.mask, w.local)
     # an upright box may be turned a little about x and y (`_tilt_allowance`)
-    turns = _turns(faces, tilt_bounds, tol) if upright else None
+    measured = upright and trusted(faces, tol)  # the planes' slopes show the turn
+    turns = _turns(faces, tilt_bounds, measured) if upright else None
     exempt = np.zeros((3, 2), dtype=bool)  # ends that allow for the turn themselves
     silhouettes = np.zeros((3, 2), dtype=bool)  # ends a whole silhouette bounds
     margin_face = config.surface_margin_m
@@ -291,14 +292,14 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
             return None
         seen.append(False)
         hidden.append(extra)
-    yaw = None if turns is None or not trusted(faces, tol) else yaw_bound(faces, TILT_SIGMAS)
+    yaw = yaw_bound(faces, TILT_SIGMAS) if measured else None
     if yaw is not None:
         turned = np.array([turns[0], turns[1], yaw])
         _side_ends(per_view, local, lo, hi, turned, visible, silhouettes, ends_by, exempt,
                    margin_face)
     if upright:
         lo, hi = _tilt_allowance(lo, hi, turns, exempt)
-    return lo, hi, seen, hidden, ends_by, faces
+    return lo, hi, seen, hidden, ends_by, yaw
 
 
 def _side_ends(views: list[_BoxView], local: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -332,13 +333,13 @@ def _side_ends(views: list[_BoxView], local: np.ndarray, lo: np.ndarray, hi: np.
             exempt[k, side] = True
 
 
-def _turns(faces: list[FacePlane], tilts: np.ndarray, tol: float) -> np.ndarray:
+def _turns(faces: list[FacePlane], tilts: np.ndarray, measured: bool) -> np.ndarray:
     """How far an upright box may be turned about its x and y axes (rad; 0 about z): every
     face's slopes pooled (`face_planes.turn_bounds`, plus `TILT_SIGMAS` standard errors).
-    Where no plane was fitted, or a plane's slant flattened (`face_planes.trusted`), each
-    turn is at most the tilt bound of a face across either other axis (``tilts``,
-    `_face_tilts`, where measured: above 0; otherwise the largest)."""
-    about = turn_bounds(faces, TILT_SIGMAS) if trusted(faces, tol) else None
+    Where no plane was fitted, or (not ``measured``) a plane's slant flattened
+    (`face_planes.trusted`), each turn is at most the tilt bound of a face across either
+    other axis (``tilts``, `_face_tilts`, where measured: above 0; otherwise the largest)."""
+    about = turn_bounds(faces, TILT_SIGMAS) if measured else None
     if about is None:
         fallback = float(tilts.max())
         about = np.array([min([tilts[a] for a in range(3) if a != i and tilts[a] > 0.0],
