@@ -99,6 +99,38 @@ def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(plann
     assert _mesh_clearance_along(mesh, event.result.path, [ball]) > 0.0
 
 
+def test_a_re_route_from_where_the_last_route_started_takes_it_while_it_is_certified(
+        planner, robots, monkeypatch):
+    """An arm still at rest where its last route started (waiting out a mover, holding) is
+    re-routed onto that route without a search while the route is certified; an obstacle
+    on it, another start or a new goal are searched as before."""
+    fast, _ = robots
+    scenario = next(s for s in SCENARIOS if s.name == "B-001")
+    first = planner.plan(scenario.start, pose_goal(scenario), [])
+    assert first.success
+    searches = []
+    real = planner._lazy_astar
+    monkeypatch.setattr(planner, "_lazy_astar",
+                        lambda query, active: searches.append(1) or real(query, active))
+    far = Shape("sphere", (0.05,), np.array([-0.6, -0.6, 0.2]))
+    again = planner.replan(scenario.start, [far])
+    assert again.success and not searches
+    np.testing.assert_array_equal(again.path, first.path)
+    # an obstacle on the route's middle: refused there, searched, and the new route avoids it
+    mid = 0.5 * (first.path[0] + first.path[1])
+    ball = Shape("sphere", (0.06,), fast.fk(mid)[:3, 3])
+    around = planner.replan(scenario.start, [ball])
+    assert around.success and searches
+    assert _fast_clearance_along(fast, around.path, [ball]) > 0.0
+    # another start: searched
+    searches.clear()
+    moved = scenario.start + 0.01
+    assert planner.replan(moved, [far]).success and searches
+    # a new goal (plan) from the start of the last route: searched afresh
+    searches.clear()
+    assert planner.plan(moved, pose_goal(scenario), [far]).success and searches
+
+
 def _fast_clearance_along(fast: Robot, path: np.ndarray, obstacles, step: float = 0.02):
     states = [a + f * (b - a) for a, b in zip(path, path[1:], strict=False)
               for f in np.linspace(0.0, 1.0, max(2, int(np.ceil(np.max(np.abs(b - a)) / step))))]
