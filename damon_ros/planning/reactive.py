@@ -207,6 +207,8 @@ class RuntimeStats:
     escapes: int = 0
     followed_on: int = 0  # threats met by following the running trajectory (`_update`)
     replan_latency_ms: list[float] = field(default_factory=list)
+    # per re-route: a holding arm's retry that found a route, not one on a threat or stall
+    replan_resumed: list[bool] = field(default_factory=list)
     plan_latency_ms: list[float] = field(default_factory=list)
 
 
@@ -486,6 +488,7 @@ class ReactivePlanner:
             return self._hold(f"{why}; {result.reason}", result, latency)
         self.stats.replans += 1
         self.stats.replan_latency_ms.append(latency)
+        self.stats.replan_resumed.append(self.state == "holding")
         event = self._execute(result, latency)
         event.reason = why
         return event

@@ -208,19 +208,25 @@ def summary(records: list[dict]) -> str:
 
 def band_summary(records: list[dict]) -> str:
     """The stress view: one row per (mover speed band, planner) — success, contacts, the
-    least clearance (over each run's minimum: worst, 5th percentile, median) and re-plan
-    latency (p50, p99, and the most)."""
+    least clearance (over each run's minimum: worst, 5th percentile, median), re-plan
+    latency (p50, p99, and the most), and its p99 over the re-routes of an executing arm
+    (a threat, a stall) alone: without a holding arm's retries, which find a route for an
+    arm already braked to rest."""
     groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
     for r in records:
         if "planner" in r and "band" in r:
             groups[(r["band"], r["planner"])].append(r)
     header = (f"{'band':<14} {'planner':<12} {'runs':>4} {'success':>8} {'contacts':>8} "
               f"{'clr min mm':>10} {'clr p5 mm':>9} {'clr p50 mm':>10} {'replans':>7} "
-              f"{'replan p50 ms':>13} {'replan p99 ms':>13} {'replan max ms':>13}")
+              f"{'replan p50 ms':>13} {'replan p99 ms':>13} {'replan max ms':>13} "
+              f"{'exec p99 ms':>11}")
     lines = [header, "-" * len(header)]
     for (band, planner), rs in sorted(groups.items()):
         clear = [1e3 * r["min_clearance_m"] for r in rs if r.get("min_clearance_m") is not None]
         replans = [x for r in rs for x in (r.get("replan_latency_ms") or [])]
+        executing = [x for r in rs for x, resumed in zip(
+            r.get("replan_latency_ms") or [], r.get("replan_resumed") or [], strict=False)
+            if not resumed]
         lines.append(
             f"{band:<14} {planner:<12} {len(rs):>4} "
             f"{100 * np.mean([bool(r.get('success')) for r in rs]):>7.1f}% "
@@ -228,7 +234,7 @@ def band_summary(records: list[dict]) -> str:
             f"{min(clear, default=float('nan')):>10.1f} {_pct(clear, 5):>9.1f} "
             f"{_pct(clear, 50):>10.1f} {len(replans):>7} "
             f"{_pct(replans, 50):>13.2f} {_pct(replans, 99):>13.2f} "
-            f"{max(replans, default=float('nan')):>13.2f}")
+            f"{max(replans, default=float('nan')):>13.2f} {_pct(executing, 99):>11.2f}")
     return "\n".join(lines)
 
 
