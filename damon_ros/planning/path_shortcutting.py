@@ -13,6 +13,8 @@ which certifies the result and falls back to its own shortcut when that refuses 
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -81,19 +83,30 @@ def _pull(path, first_margin, margin, resolution, lower, upper, fractions, round
 
 def shortcut(spheres, path: np.ndarray, obstacles: Sequence[Shape], first_margin: float,
              margin: float, resolution: float, lower: np.ndarray, upper: np.ndarray,
-             rounds: int = 3) -> np.ndarray:
-    """``path`` (N, 7) shortened: greedy shortcuts, then the pull toward the midpoints; the
-    first segment keeps ``first_margin``, every other ``margin``, on the fast model
-    ``spheres`` against ``obstacles``. Self-collision is not checked (the caller's)."""
+             rounds: int = 3, deadline: float = math.inf) -> np.ndarray:
+    """``path`` (N, 7) shortened: greedy shortcuts, then the pull toward the midpoints, at
+    most ``rounds`` rounds and none begun after ``deadline`` (`time.perf_counter`; the pull
+    only shortens a route that is already clear); the first segment keeps
+    ``first_margin``, every other ``margin``, on the fast model ``spheres`` against
+    ``obstacles``. Self-collision is not checked (the caller's)."""
     path = np.ascontiguousarray(path, dtype=float)
     if len(path) < 3 or not obstacles:
         return path[[0, -1]] if not obstacles else path
     robot = tuple(spheres.kernel_args)
     packed = sphere_kernels.pack_obstacles(tuple(obstacles))
     keep = _greedy(path, first_margin, margin, resolution, robot, packed)
-    return _pull(path[keep].copy(), first_margin, margin, resolution,
-                 np.asarray(lower, float), np.asarray(upper, float),
-                 np.array(PULL_FRACTIONS), rounds, robot, packed)
+    path = path[keep].copy()
+    bounds = (np.asarray(lower, float), np.asarray(upper, float))
+    fractions = np.array(PULL_FRACTIONS)
+    for _ in range(rounds):  # a round at a time: the deadline is checked between rounds
+        if time.perf_counter() > deadline:
+            break
+        before = path.copy()
+        path = _pull(path, first_margin, margin, resolution, *bounds, fractions, 1, robot,
+                     packed)
+        if float(np.max(np.abs(path - before))) < 0.01:
+            break
+    return path
 
 
 def warm_up(spheres) -> None:

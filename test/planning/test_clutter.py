@@ -64,6 +64,11 @@ def test_compiled_shortcut_keeps_the_ends_every_segment_clear_and_is_no_longer(f
         return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
 
     assert len(short) <= len(raw) and length(short) <= length(raw) + 1e-9
+    # a deadline already past (a moving arm's route after the handover): no pull round
+    greedy = path_shortcutting.shortcut(fast.spheres, raw, wall, 0.01, 0.01, 0.02,
+                                        fast.limits.lower, fast.limits.upper, deadline=0.0)
+    assert all(any(np.array_equal(g, r) for r in raw) for g in greedy)  # waypoints kept
+    assert length(short) < length(greedy) - 1e-3  # the pull rounds did shorten it
 
 
 def _wall_at(x: float) -> Shape:
