@@ -372,10 +372,16 @@ def test_a_new_goal_while_moving_replaces_the_old_one(cell: Cell):
     cell.goal_pub.publish(goal_msg(*GOAL_A))
     assert cell.ros.spin_until(cell.moving, 10.0), cell.logs()
     assert cell.reach(GOAL_B), cell.logs()
-    assert len(cell.lines("planner", "plan:")) == plans + 2
+    assert len(cell.lines("planner", "plan:")) == plans + 2, cell.logs()
     # from rest: starts on arrival; from the moving arm: a brake from the measured state
-    # first, stamped with the time that state was measured (the arm has coasted on since)
-    from_rest, from_moving = cell.trajectories.messages[sent:sent + 2]
+    # first, stamped with the time that state was measured (the arm has coasted on since).
+    # Under load the first goal may be re-planned in between (the arm had not moved within
+    # the runtime's stall time): the second goal's is the first trajectory ending here.
+    here = dict(zip(cell.states.last.name, cell.q(), strict=True))
+    from_rest = cell.trajectories.messages[sent]
+    from_moving = next(m for m in cell.trajectories.messages[sent + 1:] if max(
+        abs(p - here[n]) for n, p in zip(m.joint_names, m.points[-1].positions,
+                                         strict=True)) < 0.02)
     assert from_rest.header.stamp.sec == 0 and from_rest.header.stamp.nanosec == 0
     assert from_moving.header.stamp.sec > 0
     assert max(abs(v) for v in from_moving.points[0].velocities) > 0.05
