@@ -50,43 +50,41 @@ def _greedy(path, first_margin, margin, resolution, robot, obstacles):
 
 
 @njit(cache=True)
-def _pull(path, first_margin, margin, resolution, lower, upper, fractions, rounds, robot,
-          obstacles):
-    """Each interior waypoint moves toward its neighbours' midpoint as far as both of its
-    segments stay clear; until a round moves nothing by 0.01 rad or ``rounds`` are done."""
+def _pull_round(path, first_margin, margin, resolution, lower, upper, fractions, robot,
+                obstacles):
+    """One round: each interior waypoint moves (in place) toward its neighbours' midpoint
+    as far as both of its segments stay clear. Returns the largest move (rad)."""
     n, dims = path.shape
     candidate = np.empty(dims)
-    for _ in range(rounds):
-        moved = 0.0
-        for i in range(1, n - 1):
-            for f in fractions:
-                inside = True
+    moved = 0.0
+    for i in range(1, n - 1):
+        for f in fractions:
+            inside = True
+            for a in range(dims):
+                candidate[a] = path[i, a] + f * (0.5 * (path[i - 1, a] + path[i + 1, a])
+                                                 - path[i, a])
+                inside = inside and lower[a] <= candidate[a] <= upper[a]
+            if not inside:
+                continue
+            m = first_margin if i == 1 else margin
+            if _clear(path[i - 1], candidate, m, resolution, robot, obstacles) and \
+                    _clear(candidate, path[i + 1], margin, resolution, robot, obstacles):
+                step = 0.0
                 for a in range(dims):
-                    candidate[a] = path[i, a] + f * (0.5 * (path[i - 1, a] + path[i + 1, a])
-                                                     - path[i, a])
-                    inside = inside and lower[a] <= candidate[a] <= upper[a]
-                if not inside:
-                    continue
-                m = first_margin if i == 1 else margin
-                if _clear(path[i - 1], candidate, m, resolution, robot, obstacles) and \
-                        _clear(candidate, path[i + 1], margin, resolution, robot, obstacles):
-                    step = 0.0
-                    for a in range(dims):
-                        step = max(step, abs(candidate[a] - path[i, a]))
-                        path[i, a] = candidate[a]
-                    moved = max(moved, step)
-                    break
-        if moved < 0.01:
-            break
-    return path
+                    step = max(step, abs(candidate[a] - path[i, a]))
+                    path[i, a] = candidate[a]
+                moved = max(moved, step)
+                break
+    return moved
 
 
 def shortcut(spheres, path: np.ndarray, obstacles: Sequence[Shape], first_margin: float,
              margin: float, resolution: float, lower: np.ndarray, upper: np.ndarray,
              rounds: int = 3, deadline: float = math.inf) -> np.ndarray:
     """``path`` (N, 7) shortened: greedy shortcuts, then the pull toward the midpoints, at
-    most ``rounds`` rounds and none begun after ``deadline`` (`time.perf_counter`; the pull
-    only shortens a route that is already clear); the first segment keeps
+    most ``rounds`` rounds, until one moves no waypoint by 0.01 rad, and none begun after
+    ``deadline`` (`time.perf_counter`; the pull only shortens a route that is already
+    clear); the first segment keeps
     ``first_margin``, every other ``margin``, on the fast model ``spheres`` against
     ``obstacles``. Self-collision is not checked (the caller's)."""
     path = np.ascontiguousarray(path, dtype=float)
@@ -98,13 +96,11 @@ def shortcut(spheres, path: np.ndarray, obstacles: Sequence[Shape], first_margin
     path = path[keep].copy()
     bounds = (np.asarray(lower, float), np.asarray(upper, float))
     fractions = np.array(PULL_FRACTIONS)
-    for _ in range(rounds):  # a round at a time: the deadline is checked between rounds
+    for _ in range(rounds):  # a round a call: the deadline is checked between rounds
         if time.perf_counter() > deadline:
             break
-        before = path.copy()
-        path = _pull(path, first_margin, margin, resolution, *bounds, fractions, 1, robot,
-                     packed)
-        if float(np.max(np.abs(path - before))) < 0.01:
+        if _pull_round(path, first_margin, margin, resolution, *bounds, fractions, robot,
+                       packed) < 0.01:
             break
     return path
 
