@@ -102,7 +102,8 @@ def test_an_obstacle_moved_onto_the_path_triggers_a_reroute_that_avoids_it(plann
 def test_a_re_route_from_where_the_last_route_started_takes_it_while_it_is_certified(
         planner, robots, monkeypatch):
     """An arm still at rest where its last route started (waiting out a mover, holding) is
-    re-routed onto that route without a search while the route is certified; an obstacle
+    re-routed onto that route without a search while the route is certified (`_certified`,
+    the rule every route meets, not the fast screen); an obstacle
     on it, another start or a new goal are searched as before."""
     fast, _ = robots
     scenario = next(s for s in SCENARIOS if s.name == "B-001")
@@ -116,6 +117,11 @@ def test_a_re_route_from_where_the_last_route_started_takes_it_while_it_is_certi
     again = planner.replan(scenario.start, [far])
     assert again.success and not searches
     np.testing.assert_array_equal(again.path, first.path)
+    # the fast model's screen is no condition: a route only the meshes' contact band accepts
+    # (as RRT-Connect's often are) is taken again too
+    with monkeypatch.context() as patched:
+        patched.setattr(planner, "_screened", lambda path, query: False)
+        assert planner.replan(scenario.start, [far]).success and not searches
     # an obstacle on the route's middle: refused there, searched, and the new route avoids it
     mid = 0.5 * (first.path[0] + first.path[1])
     ball = Shape("sphere", (0.06,), fast.fk(mid)[:3, 3])
@@ -129,6 +135,36 @@ def test_a_re_route_from_where_the_last_route_started_takes_it_while_it_is_certi
     # a new goal (plan) from the start of the last route: searched afresh
     searches.clear()
     assert planner.plan(moved, pose_goal(scenario), [far]).success and searches
+
+
+def test_an_arm_at_rest_keeps_its_route_where_a_mover_only_sweeps_now(planner, robots,
+                                                                        monkeypatch):
+    """For an arm at rest on its last route's start, a mover's swept shape lying on that
+    route is no reason to search again: the movers are certified where they will be (the
+    space-time check), so the route is checked against what stands still. A mover leaving
+    the route keeps it; one that stays on it is searched around."""
+    fast, _ = robots
+    scenario = next(s for s in SCENARIOS if s.name == "B-001")
+    first = planner.plan(scenario.start, pose_goal(scenario), [])
+    assert first.success
+    searches = []
+    real = planner._lazy_astar
+    monkeypatch.setattr(planner, "_lazy_astar",
+                        lambda query, active: searches.append(1) or real(query, active))
+    mid = 0.5 * (first.path[0] + first.path[1])
+    ball = Shape("sphere", (0.05,), fast.fk(mid)[:3, 3])
+    leaving = np.array([0.0, 0.0, 1.5])
+    scene = Scene((ball,), (swept(ball, leaving, 0.3),), ((ball, leaving),))
+    assert fast.distances(mid[None], scene.ahead)[0] < 0.0  # the sweep lies on the route
+    kept = planner.replan(scenario.start, scene)
+    assert kept.success and not searches
+    np.testing.assert_array_equal(kept.path, first.path)
+    # a mover crawling along the route stays on it: refused in space and time, searched
+    crawling = np.array([0.0, 0.0, 0.01])
+    scene = Scene((ball,), (swept(ball, crawling, 0.3),), ((ball, crawling),))
+    around = planner.replan(scenario.start, scene)
+    assert searches
+    assert not around.success or _fast_clearance_along(fast, around.path, [ball]) > 0.0
 
 
 def _fast_clearance_along(fast: Robot, path: np.ndarray, obstacles, step: float = 0.02):
