@@ -106,13 +106,7 @@ def test_a_re_route_from_where_the_last_route_started_takes_it_while_it_is_certi
     the rule every route meets, not the fast screen); an obstacle
     on it, another start or a new goal are searched as before."""
     fast, _ = robots
-    scenario = next(s for s in SCENARIOS if s.name == "B-001")
-    first = planner.plan(scenario.start, pose_goal(scenario), [])
-    assert first.success
-    searches = []
-    real = planner._lazy_astar
-    monkeypatch.setattr(planner, "_lazy_astar",
-                        lambda query, active: searches.append(1) or real(query, active))
+    scenario, first, searches = _planned_then_counting_searches(planner, monkeypatch)
     far = Shape("sphere", (0.05,), np.array([-0.6, -0.6, 0.2]))
     again = planner.replan(scenario.start, [far])
     assert again.success and not searches
@@ -144,13 +138,7 @@ def test_an_arm_at_rest_keeps_its_route_where_a_mover_only_sweeps_now(planner, r
     space-time check), so the route is checked against what stands still. A mover leaving
     the route keeps it; one that stays on it is searched around."""
     fast, _ = robots
-    scenario = next(s for s in SCENARIOS if s.name == "B-001")
-    first = planner.plan(scenario.start, pose_goal(scenario), [])
-    assert first.success
-    searches = []
-    real = planner._lazy_astar
-    monkeypatch.setattr(planner, "_lazy_astar",
-                        lambda query, active: searches.append(1) or real(query, active))
+    scenario, first, searches = _planned_then_counting_searches(planner, monkeypatch)
     mid = 0.5 * (first.path[0] + first.path[1])
     ball = Shape("sphere", (0.05,), fast.fk(mid)[:3, 3])
     leaving = np.array([0.0, 0.0, 1.5])
@@ -165,6 +153,18 @@ def test_an_arm_at_rest_keeps_its_route_where_a_mover_only_sweeps_now(planner, r
     around = planner.replan(scenario.start, scene)
     assert searches
     assert not around.success or _fast_clearance_along(fast, around.path, [ball]) > 0.0
+
+
+def _planned_then_counting_searches(planner, monkeypatch):
+    """B-001 planned from its start; then each graph search appends to the returned list."""
+    scenario = next(s for s in SCENARIOS if s.name == "B-001")
+    first = planner.plan(scenario.start, pose_goal(scenario), [])
+    assert first.success
+    searches = []
+    real = planner._lazy_astar
+    monkeypatch.setattr(planner, "_lazy_astar",
+                        lambda query, active: searches.append(1) or real(query, active))
+    return scenario, first, searches
 
 
 def _fast_clearance_along(fast: Robot, path: np.ndarray, obstacles, step: float = 0.02):
