@@ -1335,6 +1335,13 @@ class GraphPlanner:
         # mesh self-collision (~0.15 ms a move) is asked only of a move that would be taken:
         # most candidates of a last resort fail the space-time rule first (soak: ~3 ms)
         self_free = self.robot.segment_self_collision_free
+        # after a brake into a mover's grown region no escape is certified, only the last
+        # resort: its move (the clearest that qualifies) is taken as soon as it is found,
+        # not after certifying all 24 candidates. The same move, sooner: such an arm is
+        # moving toward a mover that has just started, and every millisecond counts there
+        last_resort_only = not brake_free
+        if last_resort_only and math.isinf(hold_at):
+            return self._no_escape(query, t0)
         for i in np.argsort(-clear)[:24]:
             if clear[i] <= floor + 0.01:
                 break
@@ -1348,22 +1355,39 @@ class GraphPlanner:
 
                 path = np.vstack([q_now[None], path])
                 trajectory = concatenate(brake, trajectory)
+            if last_resort_only:
+                if self._last_resort_clear(q0, pool[i], trajectory, scene):
+                    return self._last_resort(hold_at, current, clear[i], path, trajectory,
+                                             query, t0)
+                continue
             moves.append((i, path, trajectory))
-            if brake_free and (not scene.moving or self._rests_clear(trajectory, scene, margin,
-                                                                      not_before)) \
+            if (not scene.moving or self._rests_clear(trajectory, scene, margin, not_before)) \
                     and self_free(q0, pool[i]):
                 return self._escape_result(f"escaping: clearance {current:.3f} → "
                                            f"{clear[i]:.3f} m", path, trajectory, query, t0)
         if not math.isinf(hold_at):  # the clearest move whose nominal path keeps clear
             for i, path, trajectory in moves:
-                if self_free(q0, pool[i]) and self.nominally_clear(trajectory.times,
-                                                                  trajectory.positions, scene):
-                    return self._escape_result(
-                        f"escaping as a last resort (holding meets a mover's prediction "
-                        f"{hold_at:.2f} s from now, no move is certified against its "
-                        f"grown region; this one keeps clear of its nominal path): "
-                        f"clearance {current:.3f} → {clear[i]:.3f} m", path, trajectory,
-                        query, t0, "last resort")
+                if self._last_resort_clear(q0, pool[i], trajectory, scene):
+                    return self._last_resort(hold_at, current, clear[i], path, trajectory,
+                                             query, t0)
+        return self._no_escape(query, t0)
+
+    def _last_resort_clear(self, q0: np.ndarray, target: np.ndarray, trajectory,
+                           scene: Scene) -> bool:
+        """An escape's last resort (`escape`): free of self-collision, and clear of the
+        movers' nominal paths (`nominally_clear`)."""
+        return self.robot.segment_self_collision_free(q0, target) and \
+            self.nominally_clear(trajectory.times, trajectory.positions, scene)
+
+    def _last_resort(self, hold_at: float, current: float, clear: float, path: np.ndarray,
+                     trajectory, query: _Query, t0: float) -> PlanResult:
+        return self._escape_result(
+            f"escaping as a last resort (holding meets a mover's prediction {hold_at:.2f} s "
+            f"from now, no move is certified against its grown region; this one keeps clear "
+            f"of its nominal path): clearance {current:.3f} → {clear:.3f} m", path,
+            trajectory, query, t0, "last resort")
+
+    def _no_escape(self, query: _Query, t0: float) -> PlanResult:
         return PlanResult(False, "no certified escape move found", edges_checked=query.checked,
                           timing_ms={"total": 1e3 * (time.perf_counter() - t0)})
 

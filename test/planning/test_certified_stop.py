@@ -368,14 +368,11 @@ def test_a_running_last_resort_escape_is_not_braked_where_holding_meets_the_move
     assert event is not None, "the last resort ran on into a static box"
 
 
-def test_a_brake_refused_only_for_a_movers_grown_region_still_leaves_the_last_resort(
-        planner, fast, monkeypatch):
-    """A moving arm whose brake is refused escaped nowhere: every escape starts with that
-    brake. Refused only for a mover's grown region (the arm is already inside it), the
-    brake still leaves the last resort, judged by the movers' nominal paths (it keeps clear
-    of the ball's true motion here); refused for a static obstacle, it leaves nothing. (A
-    two-camera stress run and S-v1-1.5-s1205-000: the arm, on a last-resort escape, was
-    refused every move for its brake, held, and was hit.)"""
+def _brake_refused(fast, monkeypatch, refuse: dict, certified: list):
+    """An arm at READY moving at 0.3 rad/s on joint 1, a ball 0.3 m ahead of the hand
+    coming at 1.2 m/s, and `_Query.segment_certified` refusing the brake (from the measured
+    state) where ``refuse`` says: "with movers" (the movers' grown regions) or "statics".
+    Each other segment certified is appended to ``certified``: (start, end)."""
     q = READY.copy()
     p, _ = fast.tcp_pose(q)
     v = np.array([-1.2, 0.0, 0.0])
@@ -384,18 +381,48 @@ def test_a_brake_refused_only_for_a_movers_grown_region_still_leaves_the_last_re
     qd = np.zeros(7)
     qd[0] = 0.3
     real = graph_planner._Query.segment_certified
-    refuse = {"with movers": True, "statics": False}
 
     def brake_refused(self, a, b, first=False):
         if np.array_equal(a, q) and first:  # the brake: from the measured state
             if self.scene.moving and refuse["with movers"] or refuse["statics"]:
                 return False
-        return real(self, a, b, first=first)
+        ok = real(self, a, b, first=first)
+        if ok:
+            certified.append((a, b))
+        return ok
 
     monkeypatch.setattr(graph_planner._Query, "segment_certified", brake_refused)
+    return q, qd, scene, ball, v
+
+
+def test_a_brake_refused_only_for_a_movers_grown_region_still_leaves_the_last_resort(
+        planner, fast, monkeypatch):
+    """A moving arm whose brake is refused escaped nowhere: every escape starts with that
+    brake. Refused only for a mover's grown region (the arm is already inside it), the
+    brake still leaves the last resort, judged by the movers' nominal paths (it keeps clear
+    of the ball's true motion here); refused for a static obstacle, it leaves nothing. (A
+    two-camera stress run and S-v1-1.5-s1205-000: the arm, on a last-resort escape, was
+    refused every move for its brake, held, and was hit.)"""
+    refuse = {"with movers": True, "statics": False}
+    q, qd, scene, ball, v = _brake_refused(fast, monkeypatch, refuse, [])
     result = planner.escape(q, scene, qd_now=qd)
     assert result.success and result.source == "last resort", result.reason
     assert _keeps_clear(fast, result.trajectory, ball, v)
     refuse["statics"] = True
     result = planner.escape(q, scene, qd_now=qd)
     assert not result.success and "braking" in result.reason
+
+
+def test_after_a_refused_brake_the_first_last_resort_is_taken_at_once(planner, fast,
+                                                                       monkeypatch):
+    """With the brake refused no escape can be certified, so the clearest candidate that
+    the last resort accepts is taken as soon as it is found: no candidate is certified
+    after it. (The arm is moving toward a mover that has just started; in one stress scene,
+    S-v0.6-1-s1606-044, whether it touched turned on this reaction's milliseconds.)"""
+    certified = []
+    q, qd, scene, _, _ = _brake_refused(fast, monkeypatch,
+                                        {"with movers": True, "statics": False}, certified)
+    result = planner.escape(q, scene, qd_now=qd)
+    assert result.success and result.source == "last resort", result.reason
+    moves = [(a, b) for a, b in certified if not np.array_equal(a, q)]
+    assert moves and np.array_equal(moves[-1][1], result.path[-1])
