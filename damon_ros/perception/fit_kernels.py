@@ -294,32 +294,39 @@ def _worst_patch(sums: np.ndarray, counts: np.ndarray, rms: float, sigmas: float
 
 
 @njit(cache=True)
-def patch_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: float,
-                 sigmas: float, min_count: int, cells: int) -> float:
-    """The largest mean residual ``|p - c| - r`` of a patch of the sphere's surface, less
-    ``sigmas`` of its standard error (``rms`` over the root of its count), or 0; patches
-    are the ``cells`` x ``cells`` squares of each face of the cube around the centre (the
-    direction's largest axis picks the face), and count from ``min_count`` points."""
-    patches = 6 * cells * cells
-    sums = np.zeros(patches)
-    counts = np.zeros(patches, np.int64)
-    for i in range(points.shape[0]):
+def cap_misfit(points: np.ndarray, centre: np.ndarray, radius: float, rms: float,
+               sigmas: float, min_count: int, cos_radius: float, max_members: int,
+               max_caps: int) -> float:
+    """The largest mean residual ``|p - c| - r`` of the points in a cap of the sphere's
+    surface, less ``sigmas`` of its standard error (``rms`` over the root of its count), or
+    0. A cap is every other point whose direction from the centre lies within
+    ``acos(cos_radius)`` of one point's; caps count from ``min_count`` points. The points
+    are thinned to at most ``max_members``, and caps are centred on the ``max_caps`` of those
+    farthest out (a lump's, where there is one; the cost is their product). The point a cap
+    is centred on is left out of its mean, which it would bias outwards."""
+    n = points.shape[0]
+    step = max(1, -(-n // max_members))
+    m = -(-n // step)
+    units = np.empty((m, 3))
+    residuals = np.empty(m)
+    for k in range(m):
+        i = k * step
         dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
-        ax, ay, az = abs(dx), abs(dy), abs(dz)
-        if ax >= ay and ax >= az:
-            face, big, u, v, sign = 0, ax, dy, dz, dx
-        elif ay >= az:
-            face, big, u, v, sign = 1, ay, dx, dz, dy
-        else:
-            face, big, u, v, sign = 2, az, dx, dy, dz
-        if big <= 0.0:
-            continue
-        iu = min(int((u / big + 1.0) * 0.5 * cells), cells - 1)
-        iv = min(int((v / big + 1.0) * 0.5 * cells), cells - 1)
-        k = ((2 * face + (1 if sign >= 0.0 else 0)) * cells + iu) * cells + iv
-        sums[k] += math.sqrt(dx * dx + dy * dy + dz * dz) - radius
-        counts[k] += 1
-    return _worst_patch(sums, counts, rms, sigmas, min_count)
+        dist = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        units[k, 0], units[k, 1], units[k, 2] = dx / dist, dy / dist, dz / dist
+        residuals[k] = dist - radius
+    order = np.argsort(residuals)
+    best = 0.0
+    for a in order[max(0, m - max_caps):]:
+        total, count = 0.0, 0
+        for b in range(m):
+            if b != a and (units[a, 0] * units[b, 0] + units[a, 1] * units[b, 1]
+                           + units[a, 2] * units[b, 2]) >= cos_radius:
+                total += residuals[b]
+                count += 1
+        if count >= min_count:
+            best = max(best, total / count - sigmas * rms / math.sqrt(count))
+    return best
 
 
 @njit(cache=True)
@@ -664,7 +671,7 @@ def warm_up() -> None:
     points = np.random.default_rng(0).normal(size=(16, 3))
     sphere_fit(points, 1)
     sphere_spread(points, np.zeros(3), 1.0)
-    patch_misfit(points, np.zeros(3), 1.0, 0.1, 3.0, 5, 3)
+    cap_misfit(points, np.zeros(3), 1.0, 0.1, 3.0, 5, 0.9, 16, 4)
     circle_fits(points, points[:2].copy(), points[2:4].copy())
     circle_refine(np.ascontiguousarray(points[:, :2]), 0.0, 0.0, 1.0, 1)
     cylinder_refine(points, 0.0, 0.0, 1.0, 1)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from damon_ros.perception.fit_kernels import (
+    cap_misfit,
     circle_refine,
     cylinder_misfit,
     cylinder_refine,
@@ -15,7 +16,6 @@ from damon_ros.perception.fit_kernels import (
     face_plane,
     face_tilts,
     near_planes,
-    patch_misfit,
     roundest_axis,
     sphere_spread,
 )
@@ -99,20 +99,31 @@ def test_the_sphere_spread_is_the_fit_covariance_numpy_gives():
     assert sphere_spread(np.tile(points[:1], (10, 1)), centre, rms) == math.inf
 
 
-def test_a_patch_outside_the_sphere_is_its_misfit_and_noise_is_none():
-    """`patch_misfit`: noise around a sphere gives 0; a patch of points 3 mm outside it
-    gives up to 3 mm: less three of its standard errors, and the patch (a square) holds a
-    little more than the lump (a round cap)."""
-    rng = np.random.default_rng(3)
+def _noisy_sphere(seed: int, rms: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions and points of a 5 cm ball with ``rms`` noise on its radius."""
+    rng = np.random.default_rng(seed)
     directions = rng.normal(size=(3000, 3))
     directions /= np.linalg.norm(directions, axis=1)[:, None]
-    rms = 0.001
     radii = 0.05 + rng.normal(scale=rms, size=len(directions))
-    points = directions * radii[:, None]
-    assert patch_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, 3) == 0.0
-    lump = directions[:, 0] > 0.95  # a cap around +x, inside one patch of the +x face
+    return directions, directions * radii[:, None]
+
+
+CAP = math.cos(math.radians(20.0))
+
+
+@pytest.mark.parametrize("axis", [[1.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+def test_a_lump_outside_the_sphere_is_its_misfit_and_noise_is_none(axis):
+    """`cap_misfit`: noise around a sphere gives 0; a lump 3 mm outside it gives 1.5-3 mm
+    (3 mm less three of its standard errors, diluted a little where a cap reaches past the
+    lump). Caps are centred on the points farthest out, so a lump on a cube's corner
+    direction (where fixed squares on the cube's faces split it in three) is measured as
+    well as one in a face's middle."""
+    rms = 0.001
+    directions, points = _noisy_sphere(3, rms)
+    assert cap_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, CAP, 1000, 64) == 0.0
+    lump = directions @ (np.asarray(axis) / np.linalg.norm(axis)) > 0.95
     points[lump] += 0.003 * directions[lump]
-    misfit = patch_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, 3)
+    misfit = cap_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, CAP, 1000, 64)
     assert 0.0015 < misfit < 0.003
 
 
