@@ -143,6 +143,17 @@ and the arm re-routed 3x as often as with the swept check (stress bench, slow mo
 REST_HORIZON_S = 1.0
 """An arm at rest (holding, or at the end of a stop or an escape) is checked this long
 against the movers' predictions: longer than the hold's retry and a re-route's latency."""
+SWERVE_CANDIDATES = 8
+"""An escape's swerve (`GraphPlanner._swerve`) is tried toward this many of the clearest
+candidates at most: each costs ~1-3 ms (its states' chords certified), and it runs while a
+fast arm closes on a mover."""
+SWERVE_BRANCH_S = 0.06
+"""A swerve follows the stop already sent this long (its 0.03 s coast and 0.03 s of
+braking) before it turns: the time to compute it, so that the arm, braking meanwhile, is
+where the swerve says when it arrives."""
+SWERVE_CHORD_S = 0.02
+"""A swerve's states are certified as the chords between samples this far apart: at the
+Panda's 15 rad/s^2 a chord leaves the curve by under 1e-3 rad."""
 PULL_ROUNDS = 10
 """Rounds of the pull toward the neighbours' midpoints that shortens a graph route."""
 CLEARANCES_KEPT = 8
@@ -1370,7 +1381,45 @@ class GraphPlanner:
                 if self._last_resort_clear(q0, pool[i], trajectory, scene):
                     return self._last_resort(hold_at, current, clear[i], path, trajectory,
                                              query, t0)
+            if brake is not None:  # every such move brakes first: turn while braking
+                swerve = self._swerve(brake, pool, clear, floor, scene, query)
+                if swerve is not None:
+                    return self._last_resort(hold_at, current, *swerve, query, t0)
         return self._no_escape(query, t0)
+
+    def _swerve(self, brake, pool: np.ndarray, clear: np.ndarray, floor: float,
+                scene: Scene, query: _Query) -> tuple[float, np.ndarray, object] | None:
+        """The last resort of a moving arm whose every brake-then-move escape meets a mover:
+        ``(clearance, path, trajectory)`` of the clearest of the first `SWERVE_CANDIDATES`
+        candidates that the arm turns to from its ``brake`` (the stop already sent) after
+        `SWERVE_BRANCH_S` (`trajectory.swerve_trajectory`), clear of the movers' nominal
+        paths (`nominally_clear`), its states certified against the statics chord by chord
+        and free of self-collision; else None. Its path is its states every
+        `SWERVE_CHORD_S` (the runtime follows and re-checks it as a path)."""
+        from damon_ros.planning.trajectory import swerve_trajectory
+
+        statics = _Query(self, brake.positions[0], brake.positions[0], scene.statics())
+        for i in np.argsort(-clear)[:SWERVE_CANDIDATES]:
+            if clear[i] <= floor + 0.01:
+                break
+            trajectory = swerve_trajectory(brake, SWERVE_BRANCH_S, pool[i], self.limits,
+                                           self.config.trajectory_dt)
+            if trajectory is None or not self.nominally_clear(trajectory.times,
+                                                              trajectory.positions, scene):
+                continue
+            query.checked += 1
+            every = max(1, round(SWERVE_CHORD_S / self.config.trajectory_dt))
+            states = np.vstack([trajectory.positions[::every], trajectory.positions[-1:]])
+            if self._chords_free(states, statics):
+                return float(clear[i]), states, trajectory
+        return None
+
+    def _chords_free(self, states: np.ndarray, statics: _Query) -> bool:
+        """A swerve's ``states``: each chord certified against the statics (the first by the
+        first-segment rules) and free of self-collision."""
+        return all(statics.segment_certified(a, b, first=k == 0)
+                   and self.robot.segment_self_collision_free(a, b)
+                   for k, (a, b) in enumerate(zip(states[:-1], states[1:], strict=True)))
 
     def _last_resort_clear(self, q0: np.ndarray, target: np.ndarray, trajectory,
                            scene: Scene) -> bool:

@@ -471,6 +471,55 @@ def stop_trajectory(q, qd, limits: JointLimits, coast_s: float = 0.0,
     return Trajectory(times, positions, np.outer(sd, qd), np.outer(sdd, qd))
 
 
+def swerve_trajectory(lead: Trajectory, branch_s: float, target, limits: JointLimits,
+                      dt: float = 0.01) -> Trajectory | None:
+    """``lead`` (a stop, `stop_trajectory`) until its first sample at or after ``branch_s``,
+    then the time-optimal jerk-limited motion from that state to rest at ``target`` without
+    stopping first (ruckig, every joint from its velocity and acceleration there;
+    time-synchronised, so it leaves the straight lines the planner certifies: the caller
+    certifies its sampled states). None where it would leave the position limits or exceed
+    a position-dependent velocity limit on the way (a move whose velocity heads into a limit
+    overshoots toward it before it turns back).
+
+    Why: braking on the line along the arm's velocity and then moving is the only escape a
+    stop allows, and a ball diving onto that line where a fast arm would stop left no such
+    move clear of it (generated G scenes); turning while braking does. The stop is followed
+    until ``branch_s`` because it is already on its way to the controller when a threat is
+    found: a turn computed meanwhile must continue what the arm did, not restart from the
+    state it was in."""
+    k = min(int(np.searchsorted(lead.times, branch_s - 1e-9)), len(lead.times) - 1)
+    dof = lead.positions.shape[1]
+    inp = InputParameter(dof)
+    inp.current_position = list(lead.positions[k])
+    inp.current_velocity = list(lead.velocities[k])
+    inp.current_acceleration = list(np.clip(lead.accelerations[k], -limits.acceleration,
+                                            limits.acceleration))
+    inp.target_position = list(np.asarray(target, dtype=float))
+    inp.target_velocity = [0.0] * dof
+    inp.target_acceleration = [0.0] * dof
+    inp.max_velocity = list(limits.velocity)
+    inp.max_acceleration = list(limits.acceleration)
+    inp.max_jerk = list(limits.jerk)
+    motion = _RuckigTrajectory(dof)
+    if Ruckig(dof).calculate(inp, motion) != Result.Working:
+        return None
+    branch = float(lead.times[k])
+    times = branch + time_grid(float(motion.duration), dt)
+    n = times.size
+    positions, velocities = np.empty((n, dof)), np.empty((n, dof))
+    accelerations = np.empty((n, dof))
+    for i, t in enumerate(times):
+        positions[i], velocities[i], accelerations[i] = motion.at_time(t - branch)[:3]
+    velocities[-1] = accelerations[-1] = 0.0
+    inside = np.all((positions >= limits.lower - 1e-9) & (positions <= limits.upper + 1e-9))
+    if not inside or np.any(limits.velocity_excess(positions, velocities) > 1e-9):
+        return None
+    return Trajectory(np.concatenate([lead.times[:k], times]),
+                      np.vstack([lead.positions[:k], positions]),
+                      np.vstack([lead.velocities[:k], velocities]),
+                      np.vstack([lead.accelerations[:k], accelerations]))
+
+
 def braking_states(q, qd, limits: JointLimits, coast_s: float = 0.0,
                    per_phase: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """(times, positions) of `stop_trajectory` from ``q`` moving at ``qd``, a few samples a

@@ -15,6 +15,7 @@ from damon_ros.planning.graph_planner import (
     BRAKE_LATENCY_S,
     REST_HORIZON_S,
     STOP_MARGIN_M,
+    SWERVE_BRANCH_S,
     GraphPlanner,
     Scene,
     _stop_states,
@@ -426,3 +427,34 @@ def test_after_a_refused_brake_the_first_last_resort_is_taken_at_once(planner, f
     assert result.success and result.source == "last resort", result.reason
     moves = [(a, b) for a, b in certified if not np.array_equal(a, q)]
     assert moves and np.array_equal(moves[-1][1], result.path[-1])
+
+
+def test_a_fast_arm_whose_every_stop_meets_a_diving_ball_turns_away_while_braking(planner,
+                                                                                   fast):
+    """G-s2607-030 (generated, seed 2607) 45 ms after its ball (5.8 cm, 0.31 m/s) started
+    to dive: the arm, at 2.2 rad/s, brakes into the ball's way, and every brake-then-move
+    escape passes through it. The last resort is then a swerve: the stop already sent,
+    followed for `SWERVE_BRANCH_S`, then a turn to a clearer state without stopping
+    first, clear of the ball's true motion. (Before, the arm found no escape, held where
+    it stopped, and was hit 0.23 s later.)"""
+    q = np.array([0.23532, 0.14172, -0.07497, -1.87085, -0.12317, 2.12094, 1.05975])
+    qd = np.array([0.24322, 0.34264, 0.82347, 0.0198, 0.07364, -0.08075, 2.20228])
+    pole = Shape("cylinder", (0.0539, 0.2118), np.array([0.5746, 0.0357, 0.2014]),
+                 np.array([0.53521, 0.0, 0.0, 0.84472]), name="pole")
+    ball = Shape("sphere", (0.0578,), np.array([0.60378, 0.23424, 0.72329]), name="ball")
+    v = np.array([-0.07442, -0.18962, -0.2322])
+    scene = Scene((pole, ball), (pole, swept(ball, v, 0.3)), ((ball, v),), 0.0)
+    result = planner.escape(q, scene, qd_now=qd)
+    assert result.success and result.source == "last resort", result.reason
+    tr, stop = result.trajectory, planner.stop_trajectory(q, qd)
+    branch = int(np.searchsorted(stop.times, SWERVE_BRANCH_S - 1e-9))
+    assert np.allclose(tr.positions[:branch + 1], stop.positions[:branch + 1])
+    assert np.allclose(tr.velocities[:branch + 1], stop.velocities[:branch + 1])
+    # it turns: it leaves the line along qd that every brake stays on
+    off_line = tr.positions - q - np.outer((tr.positions - q) @ qd / (qd @ qd), qd)
+    assert np.max(np.abs(off_line)) > 0.05
+    assert np.all(np.abs(tr.velocities) <= planner.limits.velocity + 1e-9)
+    assert np.all(np.abs(tr.accelerations) <= planner.limits.acceleration + 1e-6)
+    assert np.array_equal(tr.velocities[-1], np.zeros(7))
+    assert np.allclose(result.path[-1], tr.positions[-1])
+    assert _keeps_clear(fast, tr, ball, v)

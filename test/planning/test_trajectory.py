@@ -10,6 +10,8 @@ from damon_ros.planning.trajectory import (
     Spline,
     Trajectory,
     interpolate,
+    stop_trajectory,
+    swerve_trajectory,
     time_grid,
     time_parameterize,
 )
@@ -270,3 +272,36 @@ def test_interpolate_holds_the_ends_and_handles_one_point():
 def test_interpolate_rejects_bad_points(args, words):
     with pytest.raises(ValueError, match=words):
         interpolate(*args)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_swerve_follows_the_stop_then_turns_to_rest_at_its_target_within_limits(seed):
+    """`swerve_trajectory`: the stop's samples up to the branch, then a continuous motion
+    (velocities the derivative of positions) to rest at the target, inside every limit."""
+    rng = np.random.default_rng(seed)
+    mid = 0.5 * (LIM.lower + LIM.upper)
+    q = mid + rng.uniform(-0.5, 0.5, 7)
+    qd = rng.uniform(-0.6, 0.6, 7) * LIM.velocity
+    target = q + rng.uniform(-0.3, 0.3, 7)
+    stop = stop_trajectory(q, qd, LIM, coast_s=0.03, dt=0.01)
+    tr = swerve_trajectory(stop, 0.06, target, LIM, dt=0.01)
+    assert tr is not None
+    k = int(np.searchsorted(stop.times, 0.06 - 1e-9))
+    assert np.array_equal(tr.positions[:k + 1], stop.positions[:k + 1])
+    assert np.allclose(tr.positions[-1], target) and not tr.velocities[-1].any()
+    assert np.all(np.abs(tr.velocities) <= LIM.velocity + 1e-9)
+    assert np.all(np.abs(tr.accelerations) <= LIM.acceleration + 1e-6)
+    mid_v = 0.5 * (tr.velocities[1:] + tr.velocities[:-1])
+    assert np.allclose(np.diff(tr.positions, axis=0), mid_v * np.diff(tr.times)[:, None],
+                       atol=2e-3)
+
+
+def test_a_swerve_that_would_overshoot_a_position_limit_is_refused():
+    """Heading fast into joint 1's upper limit, a turn back to a state below it would pass
+    the limit on the way: no swerve (the caller keeps its other escapes)."""
+    q = 0.5 * (LIM.lower + LIM.upper)
+    q[0] = LIM.upper[0] - 0.05
+    qd = np.zeros(7)
+    qd[0] = LIM.velocity[0]
+    stop = stop_trajectory(q, qd, LIM, coast_s=0.03, dt=0.01)
+    assert swerve_trajectory(stop, 0.06, q - 0.2, LIM, dt=0.01) is None
