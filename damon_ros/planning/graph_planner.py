@@ -1308,7 +1308,9 @@ class GraphPlanner:
         keeps clear of the movers' nominal paths (`nominally_clear`) is a last resort
         (source "last resort"). With every stop held to the full rule, an arm 4 cm above a
         ball rising at 0.13 m/s found no escape (each one's first stop rests in the ball's
-        way, as holding does), held, and was hit: the 10-minute soak's contacts."""
+        way, as holding does), held, and was hit: the 10-minute soak's contacts. A moving
+        arm none of whose brake-then-move escapes keeps clear that way turns while braking
+        (`_swerve`), the same last resort."""
         t0 = time.perf_counter()
         q_now = np.asarray(q_now, float)
         scene = Scene.of(obstacles)
