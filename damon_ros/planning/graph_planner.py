@@ -1398,7 +1398,8 @@ class GraphPlanner:
         candidates that the arm turns to from its ``brake`` (the stop already sent) after
         `SWERVE_BRANCH_S` (`trajectory.swerve_trajectory`), clear of the movers' nominal
         paths (`nominally_clear`), its states certified against the statics chord by chord
-        and free of self-collision; else None. Its path is its states every
+        and free of self-collision, inside the joint limits less IK's margin as every escape
+        target is (`inside_limits`); else None. Its path is its states every
         `SWERVE_CHORD_S` (the runtime follows and re-checks it as a path)."""
         from damon_ros.planning.trajectory import swerve_trajectory
 
@@ -1408,9 +1409,10 @@ class GraphPlanner:
                 break
             trajectory = swerve_trajectory(brake, SWERVE_BRANCH_S, pool[i], self.limits,
                                            self.config.trajectory_dt)
-            if trajectory is None or not self.nominally_clear(trajectory.times,
-                                                              trajectory.positions, scene):
-                continue
+            if trajectory is None or np.any(self.inside_limits(trajectory.positions)
+                                            != trajectory.positions) or not \
+                    self.nominally_clear(trajectory.times, trajectory.positions, scene):
+                continue  # (on its way into IK's margin of a limit: a Franka reflex)
             query.checked += 1
             every = max(1, round(SWERVE_CHORD_S / self.config.trajectory_dt))
             states = np.vstack([trajectory.positions[::every], trajectory.positions[-1:]])
