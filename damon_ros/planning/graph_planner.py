@@ -1357,9 +1357,9 @@ class GraphPlanner:
         last_resort_only = not brake_free
         if last_resort_only and math.isinf(hold_at):
             return self._no_escape(query, t0)
-        for i in np.argsort(-clear)[:24]:
-            if clear[i] <= floor + 0.01:
-                break
+        # the clearest 24 candidates, clearest first, that gain 1 cm over the floor
+        ranked = [i for i in np.argsort(-clear)[:24] if clear[i] > floor + 0.01]
+        for i in ranked:
             query.checked += 1
             if not query.segment_certified(q0, pool[i], first=True):
                 continue
@@ -1386,27 +1386,27 @@ class GraphPlanner:
                     return self._last_resort(hold_at, current, clear[i], path, trajectory,
                                              query, t0)
             if brake is not None:  # every such move brakes first: turn while braking
-                swerve = self._swerve(brake, pool, clear, floor, scene, query)
+                swerve = self._swerve(brake, pool, clear, ranked[:SWERVE_CANDIDATES], scene,
+                                      query)
                 if swerve is not None:
                     return self._last_resort(hold_at, current, *swerve, query, t0)
         return self._no_escape(query, t0)
 
-    def _swerve(self, brake, pool: np.ndarray, clear: np.ndarray, floor: float,
+    def _swerve(self, brake, pool: np.ndarray, clear: np.ndarray, ranked: list,
                 scene: Scene, query: _Query) -> tuple[float, np.ndarray, object] | None:
         """The last resort of a moving arm whose every brake-then-move escape meets a mover:
-        ``(clearance, path, trajectory)`` of the clearest of the first `SWERVE_CANDIDATES`
-        candidates that the arm turns to from its ``brake`` (the stop already sent) after
-        `SWERVE_BRANCH_S` (`trajectory.swerve_trajectory`), clear of the movers' nominal
-        paths (`nominally_clear`), its states certified against the statics chord by chord
-        and free of self-collision, inside the joint limits less IK's margin as every escape
-        target is (`inside_limits`); else None. Its path is its states every
+        ``(clearance, path, trajectory)`` of the first of the ``ranked`` candidates (indices
+        into ``pool``, clearest first) that the arm turns to from its ``brake`` (the stop
+        already sent) after `SWERVE_BRANCH_S` (`trajectory.swerve_trajectory`), clear of the
+        movers' nominal paths (`nominally_clear`), its states certified against the statics
+        chord by chord and free of self-collision, inside the joint limits less IK's margin
+        as every escape target is (`inside_limits`); else None. Its path is its states every
         `SWERVE_CHORD_S` (the runtime follows and re-checks it as a path)."""
         from damon_ros.planning.trajectory import swerve_trajectory
 
         statics = _Query(self, brake.positions[0], brake.positions[0], scene.statics())
-        for i in np.argsort(-clear)[:SWERVE_CANDIDATES]:
-            if clear[i] <= floor + 0.01:
-                break
+        every = max(1, round(SWERVE_CHORD_S / self.config.trajectory_dt))
+        for i in ranked:
             trajectory = swerve_trajectory(brake, SWERVE_BRANCH_S, pool[i], self.limits,
                                            self.config.trajectory_dt)
             if trajectory is None or np.any(self.inside_limits(trajectory.positions)
@@ -1414,7 +1414,6 @@ class GraphPlanner:
                     self.nominally_clear(trajectory.times, trajectory.positions, scene):
                 continue  # (on its way into IK's margin of a limit: a Franka reflex)
             query.checked += 1
-            every = max(1, round(SWERVE_CHORD_S / self.config.trajectory_dt))
             states = np.vstack([trajectory.positions[::every], trajectory.positions[-1:]])
             if self._chords_free(states, statics):
                 return float(clear[i]), states, trajectory

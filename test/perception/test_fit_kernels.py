@@ -99,15 +99,6 @@ def test_the_sphere_spread_is_the_fit_covariance_numpy_gives():
     assert sphere_spread(np.tile(points[:1], (10, 1)), centre, rms) == math.inf
 
 
-def _noisy_sphere(seed: int, rms: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unit directions and points of a 5 cm ball with ``rms`` noise on its radius."""
-    rng = np.random.default_rng(seed)
-    directions = rng.normal(size=(3000, 3))
-    directions /= np.linalg.norm(directions, axis=1)[:, None]
-    radii = 0.05 + rng.normal(scale=rms, size=len(directions))
-    return directions, directions * radii[:, None]
-
-
 CAP = math.cos(math.radians(20.0))
 
 
@@ -118,8 +109,11 @@ def test_a_lump_outside_the_sphere_is_its_misfit_and_noise_is_none(axis):
     lump). Caps are centred on the points farthest out, so a lump on a cube's corner
     direction (where fixed squares on the cube's faces split it in three) is measured as
     well as one in a face's middle."""
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(3000, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
     rms = 0.001
-    directions, points = _noisy_sphere(3, rms)
+    points = directions * (0.05 + rng.normal(scale=rms, size=len(directions)))[:, None]
     assert cap_misfit(points, np.zeros(3), 0.05, rms, 3.0, 5, CAP, 1000, 64) == 0.0
     lump = directions @ (np.asarray(axis) / np.linalg.norm(axis)) > 0.95
     points[lump] += 0.003 * directions[lump]
