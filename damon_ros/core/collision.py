@@ -56,7 +56,7 @@ mesh on every sample, see docs/BENCHMARKS.md. (The old model — ``panda_collisi
 grown to contain the meshes — needed 6.5 mm here for its 2.3 mm surface sampling and its
 spheres reached up to 30 mm beyond the meshes.)"""
 PACKS_KEPT = 8
-"""Obstacle tuples whose packed arrays a sphere model keeps (`SphereModel._packed`)."""
+"""Obstacle tuples whose packed arrays a sphere model keeps (`SphereModel.packed`)."""
 SURFACE_STEP = 0.004
 """Largest edge (m) of the triangles the mesh surfaces are cut into to check that the old
 model's spheres contain them (:func:`containment_inflation`); every surface point is within
@@ -262,7 +262,7 @@ class SphereModel:
             self.joints, self.centers, self.radii)
         self._kernel_order = sphere_kernels.kernel_order(self.joints, self.centers)
 
-    def _packed(self, obstacles: Sequence[Shape]) -> tuple:
+    def packed(self, obstacles: Sequence[Shape]) -> tuple:
         """The kernels' arrays of ``obstacles``, kept for the PACKS_KEPT last (immutable)
         tuples: packing 21 shapes costs ~110 µs of Python, several times the kernel's own
         work, a search asks about the same obstacle tuple thousands of times, and a re-plan
@@ -281,13 +281,13 @@ class SphereModel:
         """(distance, sphere index, obstacle index) of the nearest sphere-obstacle pair in
         configuration q (indices into ``radii`` and ``obstacles``; -1 when none is finite)."""
         d, i, k = sphere_kernels.closest_pair(np.ascontiguousarray(q, dtype=float),
-                                              *self.kernel_args, *self._packed(obstacles))
+                                              *self.kernel_args, *self.packed(obstacles))
         return float(d), int(self._kernel_order[i]) if i >= 0 else -1, int(k)
 
     def distances(self, Q: np.ndarray, obstacles: Sequence[Shape]) -> np.ndarray:
         """(N,) minimum signed distance of configurations (N, 7) to the obstacles."""
         return sphere_kernels.batch_distances(np.ascontiguousarray(Q, dtype=float),
-                                              *self.kernel_args, *self._packed(obstacles))
+                                              *self.kernel_args, *self.packed(obstacles))
 
     def band_states(self, Q: np.ndarray, obstacles: Sequence[Shape], margin: float,
                     floor: float, budget: int) -> np.ndarray | None:
@@ -295,14 +295,14 @@ class SphereModel:
         when one is at or below ``floor`` or more than ``budget`` are within it
         (`sphere_kernels.band_states`)."""
         return sphere_kernels.band_states(np.ascontiguousarray(Q, dtype=float), margin, floor,
-                                          budget, *self.kernel_args, *self._packed(obstacles))
+                                          budget, *self.kernel_args, *self.packed(obstacles))
 
     def segment_clear(self, q0: np.ndarray, q1: np.ndarray, steps: int,
                       obstacles: Sequence[Shape], margin: float) -> bool:
         """All ``steps + 1`` evenly spaced states q0→q1 keep more than ``margin`` (``steps``
         0: the state q0 alone)."""
         return bool(sphere_kernels.segment_clear(q0, q1, steps, margin, *self.kernel_args,
-                                                 *self._packed(obstacles)))
+                                                 *self.packed(obstacles)))
 
     def route_clear(self, path: np.ndarray, margins: np.ndarray, resolution: float,
                     obstacles: Sequence[Shape]) -> bool:
@@ -310,7 +310,7 @@ class SphereModel:
         most ``resolution`` rad apart, in one compiled call (`sphere_kernels.route_clear`)."""
         return bool(sphere_kernels.route_clear(
             np.ascontiguousarray(path, dtype=float), np.asarray(margins, dtype=float),
-            float(resolution), tuple(self.kernel_args), self._packed(obstacles)))
+            float(resolution), tuple(self.kernel_args), self.packed(obstacles)))
 
     def world_centers(self, Q: np.ndarray) -> np.ndarray:
         """Sphere centres (N, S, 3) of configurations (N, 7)."""

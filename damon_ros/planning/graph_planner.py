@@ -71,12 +71,18 @@ class Scene:
 
     def statics(self) -> Scene:
         """The scene without its movers (``now[i]`` swept into ``ahead[i]``): what the
-        path checks still look at when the movers are checked in space and time."""
+        path checks still look at when the movers are checked in space and time. Made once
+        a scene: the same tuples each time are the same packed arrays for the kernels
+        (`SphereModel.packed`), where a re-plan asks for them a few hundred times."""
         if not self.moving or len(self.now) != len(self.ahead):
             return self
-        ids = {id(s) for s, _ in self.moving}
-        keep = [i for i, s in enumerate(self.now) if id(s) not in ids]
-        return Scene(tuple(self.now[i] for i in keep), tuple(self.ahead[i] for i in keep))
+        kept = self.__dict__.get("_statics")
+        if kept is None:
+            ids = {id(s) for s, _ in self.moving}
+            keep = [i for i, s in enumerate(self.now) if id(s) not in ids]
+            kept = Scene(tuple(self.now[i] for i in keep), tuple(self.ahead[i] for i in keep))
+            object.__setattr__(self, "_statics", kept)  # frozen: not a field, not compared
+        return kept
 
 
 @dataclass(frozen=True)
@@ -937,9 +943,11 @@ class GraphPlanner:
         reuse = self._reuse
         query = _Query(self, q_start, q_goal, scene, None if reuse is None else reuse.get(
             "query"))
+        around_region = reuse is not None and "query" in reuse
         if reuse is not None:
             reuse["query"] = query
-        kept = self._kept(query)
+        # a search around a mover's predicted region: the kept route is the one just refused
+        kept = None if around_region else self._kept(query)
         if kept is not None:
             result = PlanResult(True, "", kept[0], kept[1], q_goal, source=kept[2])
             result.timing_ms["search"] = 1e3 * (time.perf_counter() - t0)

@@ -91,7 +91,7 @@ def shortcut(spheres, path: np.ndarray, obstacles: Sequence[Shape], first_margin
     if len(path) < 3 or not obstacles:
         return path[[0, -1]] if not obstacles else path
     robot = tuple(spheres.kernel_args)
-    packed = sphere_kernels.pack_obstacles(tuple(obstacles))
+    packed = spheres.packed(tuple(obstacles))
     keep = _greedy(path, first_margin, margin, resolution, robot, packed)
     path = path[keep].copy()
     bounds = (np.asarray(lower, float), np.asarray(upper, float))

@@ -194,7 +194,7 @@ def rrt_connect(spheres, q_start: np.ndarray, q_goal: np.ndarray, lower: np.ndar
     nodes[0, 0], nodes[1, 0] = q_start, q_goal
     counts = np.ones(2, np.int64)
     margins = np.array([end_margins[0], end_margins[1], margin], float)
-    packed = sphere_kernels.pack_obstacles(tuple(obstacles))
+    packed = spheres.packed(tuple(obstacles))
     robot = tuple(spheres.kernel_args)
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     if sphere_kernels.motion_clear(nodes[0, 0], nodes[1, 0], min(end_margins), resolution,

@@ -40,7 +40,7 @@ def sampling_route(algorithm: str, robot, limits: JointLimits, q_start: np.ndarr
     si = ob.SpaceInformation(space)
     margin = max(0.0, margin)
 
-    obstacles = tuple(obstacles)  # one packing for the whole search (`SphereModel._packed`)
+    obstacles = tuple(obstacles)  # one packing for the whole search (`SphereModel.packed`)
 
     def valid(state) -> bool:
         q = np.array([state[i] for i in range(7)])

@@ -353,7 +353,7 @@ def stops_screen(robot, trajectory, stops: np.ndarray, first: int,
     caller re-asks that one stop in Python (the contact to report; the meshes for a line
     the fast model refuses), where before every stop cost ~0.5 ms of Python."""
     m = _Movers.of(moving, prediction)
-    packed = sphere_kernels.pack_obstacles(tuple(statics)) if statics else m.packed
+    packed = robot.spheres.packed(tuple(statics)) if statics else m.packed
     j, what = _stops_screen(
         trajectory.times, trajectory.positions, trajectory.velocities,
         np.asarray(stops, np.int64), first, limits.velocity, limits.acceleration, limits.jerk,
@@ -400,15 +400,29 @@ def _stops_screen(times, positions, velocities, stops, first, vmax, amax, jmax, 
 
 def _contact(t: float, q: np.ndarray, tau0: float, moving, prediction: Prediction,
              robot) -> Contact:
-    """The contact at instant ``t``: the nearest mover there."""
+    """The contact at instant ``t`` (fast model): the mover nearest its own region's edge
+    there, found in one compiled query (`_nearest_mover`); a query per mover, each packing
+    its moved shape, cost ~0.7 ms, a twentieth of a holding arm's slowest retries."""
     tau = tau0 + t
-    regions = [s.moved_to(s.position + v * tau) for s, v in moving]
-    gaps = [float(robot.distances(q[None], [r])[0])
-            - prediction.growth(float(np.linalg.norm(v)), tau)
-            for r, (_, v) in zip(regions, moving, strict=True)]
-    k = int(np.argmin(gaps))
-    return Contact(float(t), k, q, regions[k],
-                   prediction.growth(float(np.linalg.norm(moving[k][1])), tau))
+    m = _Movers.of(moving, prediction)
+    k = int(_nearest_mover(np.ascontiguousarray(q, float), tau, m.grow_lin, m.velocity,
+                           tuple(robot.spheres.kernel_args), *m.packed))
+    shape, v = moving[k]
+    return Contact(float(t), k, q, shape.moved_to(shape.position + v * tau),
+                   prediction.growth(float(m.speeds[k]), tau))
+
+
+@njit(cache=True)
+def _nearest_mover(q, tau, grow_lin, velocity, robot_args, kind, pos, rot, params, hull):
+    """Index of the mover with the least distance less its growth at ``tau`` (the terms of
+    rho that all movers share leave the order as it is)."""
+    jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb = robot_args
+    fr, fp, where, moved_pos, moved_hull = _scratch(jr, pos, hull)
+    _translate(tau, velocity, kind, pos, params, hull, moved_pos, moved_hull)
+    sphere_kernels._distance_below(q, np.inf, jr, jp, sj, sc, sr, gj, gs, ge, gc, gr, jb,
+                                   kind, moved_pos, rot, params, moved_hull, fr, fp, where,
+                                   -np.inf, 0, grow_lin * tau)
+    return max(where[1], 0)
 
 
 def predicted_region(contact: Contact, extra_m: float = 0.0) -> Shape:
