@@ -280,3 +280,30 @@ def test_least_distance_is_the_least_distance_to_the_movers_where_they_are(fast)
     few = slice(None, None, 10)
     assert least_distance(mesh, tr.times[few], tr.positions[few], moving, p, AGE) == (
         pytest.approx(reference(mesh, tr.times[few], tr.positions[few]), abs=1e-9))
+
+
+def test_a_contact_names_the_mover_whose_grown_region_is_nearest(fast):
+    """The compiled choice of the contact's mover against one query per mover: at the
+    contact instant, the least distance less that mover's growth (a fast mover's region
+    grows faster, so it may be named though its shape is farther)."""
+    q0, q1 = _long_move()
+    tr = time_parameterize(np.array([q0, q1]), joint_limits("panda"), 0.9, 0.8, 0.8, dt=0.01)
+    ball, v = _diver(fast, tr, 0.6 * tr.duration)
+    box = Shape("box", (0.1, 0.2, 0.05), np.array([0.5, -0.3, 0.4]),
+                np.array([0.0, 0.0, np.sin(0.3), np.cos(0.3)]), name="box")
+    points = Shape("points", (), np.array([0.3, 0.4, 0.5]),
+                   points=np.random.default_rng(3).uniform(-0.05, 0.05, (12, 3)), name="hull")
+    p = Prediction()
+    for moving in (((box, np.array([0.0, 0.4, 0.0])), (points, np.array([0.2, -0.3, 0.1])),
+                    (ball, v)),
+                   ((ball, v), (box, 2.5 * v))):
+        contact = first_contact(fast, tr.times, tr.positions, moving, 0.01, 0.02, p, AGE)
+        assert contact is not None
+        tau = max(AGE, p.min_age_s) + contact.time_s
+        gaps = [float(fast.distances(contact.q[None], [s.moved_to(s.position + w * tau)])[0])
+                - p.growth(float(np.linalg.norm(w)), tau) for s, w in moving]
+        assert contact.obstacle == int(np.argmin(gaps))
+        shape, w = moving[contact.obstacle]
+        assert contact.region.name == shape.name
+        np.testing.assert_allclose(contact.region.position, shape.position + w * tau)
+        assert contact.growth_m == pytest.approx(p.growth(float(np.linalg.norm(w)), tau))
