@@ -1324,28 +1324,13 @@ class GraphPlanner:
         scene = Scene.of(obstacles)
         if not scene.now:
             return PlanResult(False, "nothing to escape from")
-        rng = rng or np.random.default_rng(0)
-        brake, q0, brake_free = None, q_now, True
-        if qd_now is not None and float(np.max(np.abs(qd_now))) >= MOVING_RAD_S:
-            brake = self.stop_trajectory(q_now, np.asarray(qd_now, float))
-            q0 = brake.positions[-1]
-            # a brake into a mover's grown region leaves only the last resort below (a
-            # two-camera stress run: an arm on a last-resort escape, refused every move for
-            # its brake, held and was hit); one that meets a static obstacle, nothing
-            brake_free = _Query(self, q_now, q0, scene).segment_certified(q_now, q0, first=True)
-            if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or (not brake_free and not \
-                    _Query(self, q_now, q0, scene.statics()).segment_certified(q_now, q0,
-                                                                                first=True)):
-                return PlanResult(False, "no certified escape move found (braking from the "
-                                  "current speed is not certified free)")
-        ranking = (*scene.ahead, *self._predicted(scene))
-        current = self.clearance(q0, ranking)
-        jitter = self.inside_limits(q0 + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
-        pool = jitter
-        if self._tree is not None:
-            _, idx = self._tree.query(q0, k=min(candidates // 2, len(self._safe_ids)))
-            pool = np.vstack([self.graph.q[self._safe_ids[np.atleast_1d(idx)]], jitter])
-        clear = self.robot.distances(pool, ranking)
+        start = self._escape_start(q_now, qd_now, scene)
+        if start is None:
+            return PlanResult(False, "no certified escape move found (braking from the "
+                              "current speed is not certified free)")
+        brake, q0, brake_free = start
+        pool, clear, current = self._escape_pool(q0, scene, candidates,
+                                                 rng or np.random.default_rng(0))
         query = _Query(self, q0, q0, scene)
         # with movers the clearance now can be large and still shrinking: more than λ will do
         floor = self.config.margin if scene.moving else max(current, self.config.margin)
@@ -1399,6 +1384,37 @@ class GraphPlanner:
                 if swerve is not None:
                     return self._last_resort(hold_at, current, *swerve, query, t0)
         return self._no_escape(query, t0)
+
+    def _escape_start(self, q_now: np.ndarray, qd_now, scene: Scene):
+        """Where an escape starts: (None, ``q_now``, True) for an arm at rest; for a moving
+        one (brake, where it ends, whether the brake is certified against everything).
+        None when the brake ends too close to a joint limit or meets a static obstacle.
+        A brake into a mover's grown region leaves only the last resort (a two-camera
+        stress run: an arm on a last-resort escape, refused every move for its brake, held
+        and was hit)."""
+        if qd_now is None or float(np.max(np.abs(qd_now))) < MOVING_RAD_S:
+            return None, q_now, True
+        brake = self.stop_trajectory(q_now, np.asarray(qd_now, float))
+        q0 = brake.positions[-1]
+        brake_free = _Query(self, q_now, q0, scene).segment_certified(q_now, q0, first=True)
+        if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or (not brake_free and not
+                _Query(self, q_now, q0, scene.statics()).segment_certified(q_now, q0,
+                                                                            first=True)):
+            return None
+        return brake, q0, brake_free
+
+    def _escape_pool(self, q0: np.ndarray, scene: Scene, candidates: int,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """Escape candidates around ``q0`` (nearby graph vertices and random perturbations
+        of up to 0.4 rad, half each), their clearances from the swept obstacles and the
+        movers' predicted regions, and the clearance of ``q0`` itself."""
+        ranking = (*scene.ahead, *self._predicted(scene))
+        jitter = self.inside_limits(q0 + rng.uniform(-0.4, 0.4, (candidates // 2, 7)))
+        pool = jitter
+        if self._tree is not None:
+            _, idx = self._tree.query(q0, k=min(candidates // 2, len(self._safe_ids)))
+            pool = np.vstack([self.graph.q[self._safe_ids[np.atleast_1d(idx)]], jitter])
+        return pool, self.robot.distances(pool, ranking), self.clearance(q0, ranking)
 
     def _swerve(self, brake, pool: np.ndarray, clear: np.ndarray, ranked: list,
                 scene: Scene, query: _Query) -> tuple[float, np.ndarray, object] | None:
