@@ -154,11 +154,15 @@ SWERVE_CANDIDATES = 8
 candidates at most: each costs ~1-3 ms (its states' chords certified), and it runs while a
 fast arm closes on a mover."""
 SWERVE_BRANCH_S = BRAKE_LATENCY_S
-"""A swerve follows the stop already sent this long before it turns: its coast, the time a
-command is allowed to reach the controller. A swerve computed meanwhile (15-25 ms) that
-arrives a little later is joined within a milliradian of the stop. Turning after 0.03 or
+"""A swerve follows the stop already sent at least this long before it turns: its coast, the
+time a command is allowed to reach the controller (later where the computation takes
+longer: `SWERVE_LATE_FACTOR`). Turning after 0.03 or
 0.04 s: 650 of 650 generated G scenes (seeds 2607-2609, ideal perception) without contact;
 after 0.06 s, 649 (G-s2608-298 touched: no turn from that late cleared the ball)."""
+SWERVE_LATE_FACTOR = 1.5
+"""A swerve turns no sooner than this many times the computation's time so far after the
+measured state (`GraphPlanner._swerve_branch`): the rest of the computation (the swerve's
+own candidates) takes a fraction of what came before it."""
 SWERVE_CHORD_S = 0.02
 """A swerve's states are certified as the chords between samples this far apart: at the
 Panda's 15 rad/s^2 a chord leaves the curve by under 1e-3 rad."""
@@ -1299,7 +1303,8 @@ class GraphPlanner:
                                  jerk_scale=c.jerk_scale, dt=c.trajectory_dt)
 
     def escape(self, q_now: np.ndarray, obstacles, candidates: int = 96,
-               rng: np.random.Generator | None = None, qd_now=None) -> PlanResult:
+               rng: np.random.Generator | None = None, qd_now=None,
+               started: float | None = None) -> PlanResult:
         """A short certified move to a configuration with more clearance, for when no route
         to the goal exists and an obstacle is closing in: holding still is not safe from
         something that moves. Candidates are nearby graph vertices and random joint
@@ -1318,7 +1323,9 @@ class GraphPlanner:
         ball rising at 0.13 m/s found no escape (each one's first stop rests in the ball's
         way, as holding does), held, and was hit: the 10-minute soak's contacts. A moving
         arm none of whose brake-then-move escapes keeps clear that way turns while braking
-        (`_swerve`), the same last resort."""
+        (`_swerve`), the same last resort. ``started``: when the computation that asks for
+        the escape began (`time.perf_counter`; default now), the measured state's time: a
+        swerve turns only after it will have reached the controller."""
         t0 = time.perf_counter()
         q_now = np.asarray(q_now, float)
         scene = Scene.of(obstacles)
@@ -1380,7 +1387,7 @@ class GraphPlanner:
                                              query, t0)
             if brake is not None:  # every such move brakes first: turn while braking
                 swerve = self._swerve(brake, pool, clear, ranked[:SWERVE_CANDIDATES], scene,
-                                      query)
+                                      query, t0 if started is None else started)
                 if swerve is not None:
                     return self._last_resort(hold_at, current, *swerve, query, t0)
         return self._no_escape(query, t0)
@@ -1417,21 +1424,45 @@ class GraphPlanner:
         return pool, self.robot.distances(pool, ranking), self.clearance(q0, ranking)
 
     def _swerve(self, brake, pool: np.ndarray, clear: np.ndarray, ranked: list,
-                scene: Scene, query: _Query) -> tuple[float, np.ndarray, object] | None:
+                scene: Scene, query: _Query,
+                started: float) -> tuple[float, np.ndarray, object] | None:
         """The last resort of a moving arm whose every brake-then-move escape meets a mover:
         ``(clearance, path, trajectory)`` of the first of the ``ranked`` candidates (indices
         into ``pool``, clearest first) that the arm turns to from its ``brake`` (the stop
-        already sent) after `SWERVE_BRANCH_S` (`trajectory.swerve_trajectory`), clear of the
+        already sent) after `_swerve_branch` (`trajectory.swerve_trajectory`), clear of the
         movers' nominal paths (`nominally_clear`), its states certified against the statics
         chord by chord and free of self-collision, inside the joint limits less IK's margin
         as every escape target is (`inside_limits`); else None. Its path is its states every
-        `SWERVE_CHORD_S` (the runtime follows and re-checks it as a path)."""
+        `SWERVE_CHORD_S` (the runtime follows and re-checks it as a path). A swerve found
+        after its own turn (the computation since ``started`` took longer than estimated)
+        is searched once more, turning later: the arm has braked on meanwhile."""
+        for _ in range(2):
+            branch_s = self._swerve_branch(started)
+            found = self._swerve_from(brake, branch_s, pool, clear, ranked, scene, query)
+            if found is None or time.perf_counter() - started <= branch_s:
+                return found
+        return found
+
+    @staticmethod
+    def _swerve_branch(started: float) -> float:
+        """When a swerve computed from now on may turn: `SWERVE_BRANCH_S` after the measured
+        state, or later where the computation since ``started`` (`time.perf_counter`) will
+        not have ended by then (`SWERVE_LATE_FACTOR` times what it has taken so far). A
+        swerve that arrived after its turn asked the arm to be where it was not: on a
+        loaded machine (an escape of 35-82 ms) the arm lagged it, its re-check failed, it
+        stopped and was hit (S-v0.6-1-s2709-073)."""
+        return max(SWERVE_BRANCH_S, SWERVE_LATE_FACTOR * (time.perf_counter() - started))
+
+    def _swerve_from(self, brake, branch_s: float, pool: np.ndarray, clear: np.ndarray,
+                     ranked: list, scene: Scene,
+                     query: _Query) -> tuple[float, np.ndarray, object] | None:
+        """`_swerve`'s search for one turning time ``branch_s``."""
         from damon_ros.planning.trajectory import swerve_trajectory
 
         statics = _Query(self, brake.positions[0], brake.positions[0], scene.statics())
         every = max(1, round(SWERVE_CHORD_S / self.config.trajectory_dt))
         for i in ranked:
-            trajectory = swerve_trajectory(brake, SWERVE_BRANCH_S, pool[i], self.limits,
+            trajectory = swerve_trajectory(brake, branch_s, pool[i], self.limits,
                                            self.config.trajectory_dt)
             if trajectory is None or np.any(self.inside_limits(trajectory.positions)
                                             != trajectory.positions) or not \

@@ -229,6 +229,7 @@ class ReactivePlanner:
         self.trajectory = None  # what runs, and its time 0 on the caller's clock (or None)
         self.trajectory_source = ""  # what found it (`PlanResult.source`)
         self._t_start: float | None = None
+        self._update_started: float | None = None  # perf_counter at the running update's start
         self._sample = 0  # the trajectory sample the arm was last found at
         self.retries = RetryPacer(self.config.retry_period_s)
         self._failure = ""  # the reason of the last failed route search (`_reroute`)
@@ -302,14 +303,26 @@ class ReactivePlanner:
                obstacles: Sequence[tuple[Shape, np.ndarray]],
                perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event | None:
         """Called on every obstacle update and at a fixed rate; returns an event or None."""
+        self._update_started = time.perf_counter()  # the state's time, for an escape's turn
         event = self._update(t, q_now, obstacles, perception_age_s, qd_now)
         self._started(event, t)
         return event
 
     def _started(self, event: Event | None, t: float | None) -> None:
-        """A trajectory sent at ``t`` starts when its computation is over."""
-        if event is not None and event.kind == "trajectory":
-            self._t_start = None if t is None else t + event.latency_ms / 1e3
+        """When a trajectory decided at ``t`` (the measured state's time) runs from its
+        first sample. One from an arm at rest starts when its computation is over; one from
+        a moving arm (its first sample moves: a brake, then a route or an escape) is stamped
+        with the state's time, as the planner node and the closed loop send it, and the
+        arm has coasted on along it meanwhile. Timed from the end of the computation, such
+        a trajectory was re-checked as if the arm were a latency behind its true place:
+        within `TRACKING_RAD` of that sample it went unnoticed, and on the stress bench
+        (S-v0.6-1-s2709-073: a last resort sent 20-45 ms after its state, the arm at
+        ~1 rad/s) the re-check saw the arm meet the mover, stopped it and it was hit."""
+        if event is None or event.kind != "trajectory":
+            return
+        tr = event.result.trajectory if event.result is not None else None
+        moving = tr is not None and bool(np.any(tr.velocities[0] != 0.0))
+        self._t_start = None if t is None else t + (0.0 if moving else event.latency_ms / 1e3)
 
     def _update(self, t: float, q_now: np.ndarray,
                 obstacles: Sequence[tuple[Shape, np.ndarray]],
@@ -437,7 +450,8 @@ class ReactivePlanner:
         first: planned as if at rest, the move asked a moving arm to start from rest
         where it was."""
         t0 = time.perf_counter()
-        result = self.planner.escape(q_now, shapes, qd_now=qd_now)
+        result = self.planner.escape(q_now, shapes, qd_now=qd_now,
+                                     started=self._update_started)
         if not result.success:
             return None
         self.stats.escapes += 1

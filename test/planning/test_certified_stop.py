@@ -3,6 +3,8 @@ and a holding arm that evades a mover instead of freezing in its way."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from test_space_time import AGE, _long_move  # the space-time tests' move and data age
@@ -17,6 +19,7 @@ from damon_ros.planning.graph_planner import (
     STOP_MARGIN_M,
     SWERVE_BRANCH_S,
     GraphPlanner,
+    PlanResult,
     Scene,
     _stop_states,
 )
@@ -259,13 +262,9 @@ class _NoRoute(GraphPlanner):
     stop or to follow on."""
 
     def replan(self, q_now, obstacles=(), qd_now=None, escalate=True):
-        from damon_ros.planning.graph_planner import PlanResult
-
         return PlanResult(False, "no route (test)")
 
-    def escape(self, q_now, obstacles, candidates=96, rng=None, qd_now=None):
-        from damon_ros.planning.graph_planner import PlanResult
-
+    def escape(self, q_now, obstacles, candidates=96, rng=None, qd_now=None, started=None):
         return PlanResult(False, "no escape (test)")
 
 
@@ -429,21 +428,28 @@ def test_after_a_refused_brake_the_first_last_resort_is_taken_at_once(planner, f
     assert moves and np.array_equal(moves[-1][1], result.path[-1])
 
 
-def test_a_fast_arm_whose_every_stop_meets_a_diving_ball_turns_away_while_braking(planner,
-                                                                                   fast):
+def _diving_ball_state():
     """G-s2607-030 (generated, seed 2607) 45 ms after its ball (5.8 cm, 0.31 m/s) started
-    to dive: the arm, at 2.2 rad/s, brakes into the ball's way, and every brake-then-move
-    escape passes through it. The last resort is then a swerve: the stop already sent,
-    followed for `SWERVE_BRANCH_S`, then a turn to a clearer state without stopping
-    first, clear of the ball's true motion. (Before, the arm found no escape, held where
-    it stopped, and was hit 0.23 s later.)"""
+    to dive: (q, qd, scene, ball, v) with the arm at 2.2 rad/s beside a pole."""
     q = np.array([0.23532, 0.14172, -0.07497, -1.87085, -0.12317, 2.12094, 1.05975])
     qd = np.array([0.24322, 0.34264, 0.82347, 0.0198, 0.07364, -0.08075, 2.20228])
     pole = Shape("cylinder", (0.0539, 0.2118), np.array([0.5746, 0.0357, 0.2014]),
                  np.array([0.53521, 0.0, 0.0, 0.84472]), name="pole")
     ball = Shape("sphere", (0.0578,), np.array([0.60378, 0.23424, 0.72329]), name="ball")
     v = np.array([-0.07442, -0.18962, -0.2322])
-    scene = Scene((pole, ball), (pole, swept(ball, v, 0.3)), ((ball, v),), 0.0)
+    return q, qd, Scene((pole, ball), (pole, swept(ball, v, 0.3)), ((ball, v),), 0.0), ball, v
+
+
+def test_a_fast_arm_whose_every_stop_meets_a_diving_ball_turns_away_while_braking(
+        planner, fast, monkeypatch):
+    """G-s2607-030: the arm brakes into the ball's way, and every brake-then-move escape
+    passes through it. The last resort is then a swerve: the stop already sent, followed
+    for `SWERVE_BRANCH_S`, then a turn to a clearer state without stopping first, clear of
+    the ball's true motion. (Before, the arm found no escape, held where it stopped, and
+    was hit 0.23 s later.) The turn as on a machine that computes it within the stop's
+    coast: how much later a slower computation turns is the next test's."""
+    monkeypatch.setattr(graph_planner, "SWERVE_LATE_FACTOR", 0.0)
+    q, qd, scene, ball, v = _diving_ball_state()
     result = planner.escape(q, scene, qd_now=qd)
     assert result.success and result.source == "last resort", result.reason
     tr, stop = result.trajectory, planner.stop_trajectory(q, qd)
@@ -458,3 +464,64 @@ def test_a_fast_arm_whose_every_stop_meets_a_diving_ball_turns_away_while_brakin
     assert np.array_equal(tr.velocities[-1], np.zeros(7))
     assert np.allclose(result.path[-1], tr.positions[-1])
     assert _keeps_clear(fast, tr, ball, v)
+
+
+def test_a_swerve_turns_only_after_its_computation_has_reached_the_controller(
+        planner, fast, monkeypatch):
+    """A swerve is stamped with the measured state's time and joins the stop already sent:
+    one computed for longer than the stop's coast must turn later, where the arm is by
+    then (S-v0.6-1-s2709-073: an escape of 35-82 ms on a loaded machine turned 0.03 s
+    after the state, the arm lagged it, its re-check failed, it stopped and was hit). A
+    swerve found after its own turn is searched once more, turning later. The planner's
+    clock is the test's, so that the machine's load does not set the times."""
+    clock = SimpleNamespace(now=100.0)
+    clock.perf_counter = lambda: clock.now
+    monkeypatch.setattr(graph_planner, "time", clock)
+    assert GraphPlanner._swerve_branch(clock.now) == SWERVE_BRANCH_S
+    assert GraphPlanner._swerve_branch(clock.now - 0.1) == pytest.approx(
+        graph_planner.SWERVE_LATE_FACTOR * 0.1)
+    q, qd, scene, ball, v = _diving_ball_state()
+    branches = []
+    search = GraphPlanner._swerve_from
+
+    def slow_search(self, brake, branch_s, *args):
+        branches.append(branch_s)
+        clock.now += 0.05  # each search ends 50 ms later: the first after its own turn
+        return search(self, brake, branch_s, *args)
+
+    monkeypatch.setattr(GraphPlanner, "_swerve_from", slow_search)
+    result = planner.escape(q, scene, qd_now=qd)
+    assert result.success and result.source == "last resort", result.reason
+    assert branches == [SWERVE_BRANCH_S, pytest.approx(graph_planner.SWERVE_LATE_FACTOR
+                                                       * 0.05)]
+    stop, tr = planner.stop_trajectory(q, qd), result.trajectory
+    kept = int(np.searchsorted(stop.times, branches[1] - 1e-9))
+    assert np.allclose(tr.positions[:kept + 1], stop.positions[:kept + 1])
+    assert not np.allclose(tr.positions[kept + 1], stop.positions[kept + 1])
+    assert _keeps_clear(fast, tr, ball, v)
+
+
+def test_a_trajectory_from_a_moving_arm_is_rechecked_on_the_schedule_it_was_stamped_with(
+        planner):
+    """One whose first sample moves (a brake, then a route or an escape) goes out stamped
+    with the measured state's time and the arm coasts on along it while it is computed:
+    its re-check takes the rest of it from where it is due at that stamp. Timed from the
+    end of the computation (40 ms here), an arm at 0.6 rad/s was ~20 mrad ahead of the
+    sample taken for it, within `TRACKING_RAD`, and the rest was checked 40 ms late. A
+    trajectory from an arm at rest starts when its computation is over."""
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    q, qd = READY.copy(), np.zeros(7)
+    qd[0] = 0.6
+    brake = planner.stop_trajectory(q, qd)
+    route = time_parameterize(np.array([READY, READY + 0.3]), joint_limits("panda"))
+    for trajectory, moving in ((brake, True), (route, False)):
+        result = PlanResult(True, "", trajectory.positions[[0, -1]], trajectory)
+        runtime.path = result.path
+        event = runtime._execute(result, 40.0)
+        runtime._started(event, 1.0)
+        due = 0.045 if moving else 0.005  # trajectory time at t = 1.045 (between samples)
+        q_now = trajectory.sample(due)[0]
+        times, states = runtime._remaining(1.045, q_now)
+        k = int(np.searchsorted(trajectory.times, due))  # the sample due next
+        assert np.allclose(states[1], trajectory.positions[k + 1])
+        assert times[1] == pytest.approx(trajectory.times[k + 1] - trajectory.times[k])
