@@ -397,8 +397,10 @@ class PlannerNode(Node):
             if q is None or self.runtime.state == "idle":  # "reached": movers may come
                 return
             obstacles, age = self._perception()
-            event = self.runtime.update(clock_seconds(self), q, obstacles,
-                                        perception_age_s=age, qd_now=qd)
+            now = clock_seconds(self)  # the state's age (its stamp: a moving arm's trajectory)
+            state_age = min(now - self._decided_from, self.joint_state_timeout)
+            event = self.runtime.update(now, q, obstacles, perception_age_s=age, qd_now=qd,
+                                        state_age_s=state_age)
             self._act(event, received, "update")
 
     def _act(self, event, received: float, cause: str) -> None:

@@ -301,9 +301,12 @@ class ReactivePlanner:
 
     def update(self, t: float, q_now: np.ndarray,
                obstacles: Sequence[tuple[Shape, np.ndarray]],
-               perception_age_s: float = 0.0, qd_now: np.ndarray | None = None) -> Event | None:
-        """Called on every obstacle update and at a fixed rate; returns an event or None."""
-        self._update_started = time.perf_counter()  # the state's time, for an escape's turn
+               perception_age_s: float = 0.0, qd_now: np.ndarray | None = None,
+               state_age_s: float = 0.0) -> Event | None:
+        """Called on every obstacle update and at a fixed rate; returns an event or None.
+        ``state_age_s``: how long ago ``q_now`` was measured (a trajectory from a moving arm
+        is stamped with that time, so an escape's swerve turns after it: `_escape`)."""
+        self._update_started = time.perf_counter() - max(0.0, state_age_s)
         event = self._update(t, q_now, obstacles, perception_age_s, qd_now)
         self._started(event, t)
         return event

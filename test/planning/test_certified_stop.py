@@ -3,6 +3,7 @@ and a holding arm that evades a mover instead of freezing in its way."""
 
 from __future__ import annotations
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -299,6 +300,36 @@ def test_without_a_route_the_arm_follows_on_when_braking_would_meet_the_mover(pl
     event = runtime.update(now, q_k, waiting, perception_age_s=AGE, qd_now=qd_k)
     assert stops and event is not None and event.kind == "hold"
     assert runtime.stats.followed_on == 0
+
+
+def test_an_escape_is_timed_from_when_the_arm_state_was_measured(planner, fast):
+    """The escape of a moving arm is stamped with the measured state's time; the runtime
+    hands the planner that time (`escape(started=...)`: the update's start less the
+    state's age, which the planner node knows) so that a swerve turns after it."""
+    started_at = []
+
+    class _Recording(_NoRoute):
+        def escape(self, q_now, obstacles, candidates=96, rng=None, qd_now=None,
+                   started=None):
+            started_at.append(started)
+            return super().escape(q_now, obstacles, candidates, rng, qd_now)
+
+    blocked = _Recording(planner.graph, fast, planner.limits, planner.config)
+    q0, q1 = _long_move()
+    runtime = ReactivePlanner(blocked, RuntimeConfig())
+    assert runtime.set_goal(q0, q1, [], t=0.0).kind == "trajectory"
+    tr = runtime.trajectory
+    t_k = 0.4 * tr.duration
+    q_k, qd_k = tr.sample(t_k)[:2]
+    hand, _ = fast.tcp_pose(q_k)
+    ahead, _ = fast.tcp_pose(tr.sample(t_k + 0.01)[0])
+    behind = 0.6 * (ahead - hand) / np.linalg.norm(ahead - hand)
+    chaser = [(Shape("sphere", (0.05,), hand - behind * (AGE + 0.35), name="ball"), behind)]
+    before = time.perf_counter()
+    runtime.update(runtime._t_start + t_k, q_k, chaser, perception_age_s=AGE, qd_now=qd_k,
+                   state_age_s=0.2)
+    after = time.perf_counter()
+    assert started_at and before - 0.2 <= started_at[0] <= after - 0.2
 
 
 def _ball_below(fast: Robot, q: np.ndarray, gap: float) -> Shape:
