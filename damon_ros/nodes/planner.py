@@ -397,7 +397,8 @@ class PlannerNode(Node):
             if q is None or self.runtime.state == "idle":  # "reached": movers may come
                 return
             obstacles, age = self._perception()
-            now = clock_seconds(self)  # the state's age (its stamp: a moving arm's trajectory)
+            now = clock_seconds(self)
+            # a moving arm's trajectory carries the state's stamp: an escape counts from it
             state_age = min(now - self._decided_from, self.joint_state_timeout)
             event = self.runtime.update(now, q, obstacles, perception_age_s=age, qd_now=qd,
                                         state_age_s=state_age)
