@@ -834,6 +834,11 @@ class GraphPlanner:
         return np.clip(q, self.limits.lower + IK_LIMIT_MARGIN,
                        self.limits.upper - IK_LIMIT_MARGIN)
 
+    def keeps_limit_margin(self, q: np.ndarray) -> bool:
+        """Whether ``q`` (one state or rows of states) lies inside the joint limits less
+        IK's margin: `inside_limits` leaves it as it is."""
+        return bool(np.array_equal(self.inside_limits(q), q))
+
     def _route_moving(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
         """`_route`, for an arm that may be moving. A trajectory starts at rest, so the
         controller brakes the arm past ``q_start`` before it follows one: the route starts
@@ -847,7 +852,7 @@ class GraphPlanner:
 
         brake = self.stop_trajectory(q_start, np.asarray(qd_start, float))
         q_stop = brake.positions[-1]
-        if np.max(np.abs(self.inside_limits(q_stop) - q_stop)) > 0.0:
+        if not self.keeps_limit_margin(q_stop):
             return PlanResult(False, "braking from the current speed ends too close to a "
                               "joint limit; holding position", goal_q=q_goal)
         query = _Query(self, q_start, q_stop, scene)
@@ -1404,7 +1409,7 @@ class GraphPlanner:
         brake = self.stop_trajectory(q_now, np.asarray(qd_now, float))
         q0 = brake.positions[-1]
         brake_free = _Query(self, q_now, q0, scene).segment_certified(q_now, q0, first=True)
-        if np.max(np.abs(self.inside_limits(q0) - q0)) > 0.0 or (not brake_free and not
+        if not self.keeps_limit_margin(q0) or (not brake_free and not
                 _Query(self, q_now, q0, scene.statics()).segment_certified(q_now, q0,
                                                                             first=True)):
             return None
@@ -1464,9 +1469,8 @@ class GraphPlanner:
         for i in ranked:
             trajectory = swerve_trajectory(brake, branch_s, pool[i], self.limits,
                                            self.config.trajectory_dt)
-            if trajectory is None or np.any(self.inside_limits(trajectory.positions)
-                                            != trajectory.positions) or not \
-                    self.nominally_clear(trajectory.times, trajectory.positions, scene):
+            if trajectory is None or not self.keeps_limit_margin(trajectory.positions) or \
+                    not self.nominally_clear(trajectory.times, trajectory.positions, scene):
                 continue  # (on its way into IK's margin of a limit: a Franka reflex)
             query.checked += 1
             states = np.vstack([trajectory.positions[::every], trajectory.positions[-1:]])

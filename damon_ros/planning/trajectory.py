@@ -511,8 +511,8 @@ def swerve_trajectory(lead: Trajectory, branch_s: float, target, limits: JointLi
     for i, t in enumerate(times):
         positions[i], velocities[i], accelerations[i] = motion.at_time(t - branch)[:3]
     velocities[-1] = accelerations[-1] = 0.0
-    inside = np.all((positions >= limits.lower - 1e-9) & (positions <= limits.upper + 1e-9))
-    if not inside or np.any(limits.velocity_excess(positions, velocities) > 1e-9):
+    if not limits.within(positions, 1e-9) or np.any(
+            limits.velocity_excess(positions, velocities) > 1e-9):
         return None
     return Trajectory(np.concatenate([lead.times[:k], times]),
                       np.vstack([lead.positions[:k], positions]),
