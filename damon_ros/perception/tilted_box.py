@@ -123,8 +123,14 @@ def _frame(points: np.ndarray, tol: float) -> np.ndarray | None:
         return None
     rest = sample[~on_first]
     second = None
-    if len(rest) >= max(8, FACE_SHARE * len(sample)):
-        second, _ = _plane(rest, tol, rng, across=first)
+    need = max(8, FACE_SHARE * len(sample))  # as many points as a visible face has
+    if len(rest) >= need:
+        second, on_second = _plane(rest, tol, rng, across=first)
+        if np.count_nonzero(on_second) < need:
+            # a few points off the one face seen (its rim, mixed pixels) are no second
+            # face: 8 of them turned a single face's frame 40 deg about its normal, a
+            # stress box then bounded at 4 times its volume
+            second = None
     if second is None:
         second = _rectangle_axis(sample[on_first], first)
     axes = np.column_stack([first, second, np.cross(first, second)])
