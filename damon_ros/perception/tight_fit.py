@@ -40,6 +40,12 @@ from scipy.spatial.transform import Rotation
 
 from damon_ros.core.shapes import Shape
 from damon_ros.perception.camera import Camera, project
+from damon_ros.perception.face_cover import (
+    HOLE_SHARE,
+    MIN_COSINE,
+    face_corners,
+    uncovered_share,
+)
 from damon_ros.perception.face_planes import (
     FacePlane,
     FaceReach,
@@ -226,7 +232,7 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     edge = on_other_faces(near_low, near_high)
     visible = np.logical_or.reduce([w.facing for w in per_view]) & np.column_stack(
         [(near_low & ~edge).sum(axis=0) >= need, (near_high & ~edge).sum(axis=0) >= need])
-    if not visible.any():
+    if not visible.any() or _holed_face(per_view, near_low, near_high, axes):
         return None
     tilts, tilt_bounds = _face_tilts(local, near_low, near_high, visible)
     if tilts.max() > MAX_FACE_TILT_RAD:
@@ -300,6 +306,24 @@ def bound_in_frame(views: Sequence[tuple[Camera, np.ndarray]], cut: Sequence[boo
     if upright:
         lo, hi = _tilt_allowance(lo, hi, turns, exempt)
     return lo, hi, seen, hidden, ends_by, yaw
+
+
+def _holed_face(views: list[_BoxView], near_low: np.ndarray, near_high: np.ndarray,
+                axes: np.ndarray) -> bool:
+    """Whether a whole view shows a face with gaps that no box's face has: the points are
+    no box, and a box closed behind them could leave out what stands behind the gaps
+    (`face_cover`). Faces seen at a grazing angle are not judged."""
+    for w in views:
+        if not w.whole:
+            continue
+        for k, side in zip(*np.nonzero(w.visible), strict=True):
+            on = (near_high if side else near_low)[w.mask][:, k]
+            if np.median(w.cosines[on, k]) < MIN_COSINE:
+                continue
+            corners = face_corners(w.local[on], k) @ axes.T
+            if uncovered_share(w.camera, w.points[on], corners) > HOLE_SHARE:
+                return True
+    return False
 
 
 def _side_ends(views: list[_BoxView], local: np.ndarray, lo: np.ndarray, hi: np.ndarray,
