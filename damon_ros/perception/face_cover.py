@@ -32,6 +32,8 @@ most 0.014 uncovered, the generated hands' 0.049-0.12."""
 COVER_SPACINGS = 2.0
 """A pixel of the face's image is covered within this many sample spacings of a sample (the
 median distance between neighbouring samples, which includes the tracker's thinning)."""
+SPACING_QUERIES = 128
+"""The sample spacing is the median over about this many samples (one in every few)."""
 MIN_COSINE = 0.1
 """Faces seen more grazingly than this cosine between ray and normal (the median over their
 points) are not judged: their samples thin out unevenly along the face."""
@@ -51,7 +53,8 @@ def uncovered_share(camera: Camera, points: np.ndarray, corners: np.ndarray) -> 
     outline = project(camera, corners)
     if not (np.isfinite(uv).all() and np.isfinite(outline).all()):
         return 0.0
-    spacing = float(np.median(cKDTree(uv).query(uv, k=2)[0][:, 1]))
+    some = uv[::max(1, len(uv) // SPACING_QUERIES)]  # the median of a few hundred will do
+    spacing = float(np.median(cKDTree(uv).query(some, k=2)[0][:, 1]))
     reach = max(2, math.ceil(COVER_SPACINGS * spacing))
     origin = np.floor(outline.min(axis=0)) - reach - 1
     size = (np.ceil(outline.max(axis=0)) - origin + reach + 2).astype(int)
