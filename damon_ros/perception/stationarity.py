@@ -38,7 +38,8 @@ SHRUNK_SHARE = 0.8
 """A view with fewer pixels than this share of the whole views' typical count shows only
 part of the object (a still box's pixel count varies by a few per cent from frame to frame)."""
 JITTER_SHARE = 0.25
-"""A centre within this share of ``moving_shift_m`` of the anchor is the object at rest there
+"""A centre within this share of the shift that counts as motion (``moving_shift_m``, or
+``moving_shift_round_m`` for a fitted ball) of the anchor is the object at rest there
 (`Stationarity.jitter_m`)."""
 AREA_HISTORY = 15
 """The typical pixel count is the median of this many last whole views."""
@@ -50,6 +51,7 @@ class Stationarity:
     def __init__(self, config: TrackerConfig) -> None:
         self.config = config
         self.still = False
+        self._round = False  # the last observation was a fitted ball
         self.anchor: np.ndarray | None = None
         self._slow_since: float | None = None
         self._slow: list[np.ndarray] = []  # the centres since _slow_since
@@ -94,9 +96,12 @@ class Stationarity:
     @property
     def jitter_m(self) -> float:
         """How far a still object's centre is seen from its anchor by noise alone: a
-        quarter of ``moving_shift_m`` (a ball's centre jitters by a fraction of a millimetre,
-        a box's fit by a few)."""
-        return JITTER_SHARE * self.config.moving_shift_m
+        quarter of the shift that counts as motion for its last observation,
+        ``moving_shift_round_m`` for a fitted ball (its centre jitters by a fraction of a
+        millimetre), else ``moving_shift_m`` (a box's fit by a few). A ball's 5 mm (a
+        quarter of a box's shift) took its first frame after a start, 4.7 mm out, for rest."""
+        c = self.config
+        return JITTER_SHARE * (c.moving_shift_round_m if self._round else c.moving_shift_m)
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray,
                round_fit: bool = False) -> np.ndarray:
@@ -104,6 +109,7 @@ class Stationarity:
         the observation is a fitted ball, whose centre the fit pins to a fraction of a
         millimetre, so it is seen to leave its anchor by ``moving_shift_round_m``."""
         c = self.config
+        self._round = round_fit
         speed = float(np.linalg.norm(velocity))
         shift = c.moving_shift_round_m if round_fit else c.moving_shift_m
         if self.still:

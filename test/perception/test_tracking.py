@@ -362,34 +362,42 @@ def test_a_ball_that_starts_fast_is_reported_near_its_speed_within_a_tenth_of_a_
             assert abs(cruise[0] - 0.4) < 0.1
 
 
-def test_a_ball_that_starts_slowly_is_reported_at_its_speed_once_it_moves():
-    """A ball at rest starts at 0.19 m/s (below the short slope's onset test: 2 cm in
-    0.1 s). It is seen to move within 1.5 cm, and its velocity then comes from the samples
-    since it was last at rest, not from a window that still holds it at rest (which
-    reported 0.07-0.13 m/s for 0.1 s, 2 cm late, and a stop certified against that was
-    hit: generated G scene G-s2402-045, one camera)."""
+@pytest.mark.parametrize(("speed", "after_frame"), [(0.19, 0.0), (0.31, 0.55), (0.19, 0.7)])
+def test_a_ball_that_starts_slowly_is_reported_at_its_speed_once_it_moves(speed, after_frame):
+    """A ball at rest starts at 0.19-0.31 m/s (below the short slope's onset test: 2 cm in
+    0.1 s), on a frame or ``after_frame`` of a frame period after one. It is seen to move
+    within 1.5 cm, and its velocity then comes from the samples since it was last at rest,
+    not from a window that still holds it at rest (which reported 0.07-0.13 m/s for 0.1 s,
+    2 cm late, and a stop certified against that was hit: generated G scene G-s2402-045,
+    one camera). A start between frames leaves the first frame a few mm out: that frame is
+    no longer at rest (a ball's jitter is a quarter of its 7 mm shift, not of a box's 2 cm,
+    which took it for rest and the speed for 1.45 times the truth), and the motion is taken
+    to begin where the moved frames' line leaves the rest place (from the last frame at rest
+    it was two thirds of the speed: G-s2607-030, one camera, a diving ball hit the arm)."""
     import yaml
 
     from damon_ros.core.resources import public_scenarios_dir
     from damon_ros.core.scenario import parse_scenario
 
     data = yaml.safe_load((public_scenarios_dir() / "D-001.yaml").read_text())
-    start, direction, speed = np.array([0.55, 0.2, 0.6]), np.array([-0.3, -0.7, -0.6]), 0.19
+    start, direction = np.array([0.55, 0.2, 0.6]), np.array([-0.3, -0.7, -0.6])
     direction /= np.linalg.norm(direction)
+    begin = 1.0 + after_frame / 30.0
     end = start + direction * speed * 2.0
     data["obstacles"] = [{"name": "ball", "shape": "sphere", "size": [0.06], "color": "yellow",
                           "pose": {"position": start.tolist(), "orientation": [0, 0, 0, 1]},
                           "motion": {"type": "waypoints",
-                                     "waypoints": [[0.0, *start], [1.0, *start],
-                                                   [3.0, *end.tolist()]]}}]
+                                     "waypoints": [[0.0, *start], [begin, *start],
+                                                   [begin + 2.0, *end.tolist()]]}}]
     scenario = parse_scenario(data, "slow-start")
     times = np.arange(45) / 30.0
     history = _run(scenario, times, Tracker(CAMERA, CONFIG))
     reported = [(t, np.linalg.norm(tracks[0].velocity)) for t, tracks in zip(times, history,
                                                                             strict=True)]
-    assert all(v < 0.01 for t, v in reported if t < 1.0)  # at rest, then seen to move ...
-    moving = [(t, v) for t, v in reported if t >= 1.0 and v > 0.01]
-    # ... within its first 1.5 cm: a fitted ball's centre is seen to leave its anchor by
-    # moving_shift_round_m, not by a box's moving_shift_m (2 cm: 0.1 s at this speed)
-    assert moving and moving[0][0] < 1.0 + 0.015 / speed, moving
+    assert all(v < 0.01 for t, v in reported if t < begin)  # at rest, then seen to move ...
+    moving = [(t, v) for t, v in reported if t >= begin and v > 0.01]
+    # ... within a frame of leaving its anchor by moving_shift_round_m (a fitted ball's
+    # centre), not by a box's moving_shift_m (2 cm: 0.1 s at 0.19 m/s)
+    assert moving and moving[0][0] <= begin + CONFIG.moving_shift_round_m / speed + 1 / 30, \
+        moving
     assert all(abs(v - speed) < 0.25 * speed for _, v in moving), moving
