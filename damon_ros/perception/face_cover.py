@@ -10,7 +10,7 @@ its points on a box's faces: the palm, the fingers (within a finger's radius of 
 plane) and the thumb's end. Its front "face" then spans palm, fingers and thumb with empty
 image between them, and the box closed at the palm's thickness left the thumb 2-5 cm
 outside (19 of the 21 whole one-camera views of seed 2106 not contained). No true box
-leaves such gaps: over the whole views of four generated seeds, every box's faces seen at
+leaves such gaps: over the whole views of five generated seeds, every box's faces seen at
 least `MIN_COSINE` off grazing and `MIN_AREA_PX` large left at most 1.4 % of their image
 uncovered, the hands 4.9-12 %.
 """
