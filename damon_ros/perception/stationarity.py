@@ -51,7 +51,6 @@ class Stationarity:
     def __init__(self, config: TrackerConfig) -> None:
         self.config = config
         self.still = False
-        self._round = False  # the last observation was a fitted ball
         self.anchor: np.ndarray | None = None
         self._slow_since: float | None = None
         self._slow: list[np.ndarray] = []  # the centres since _slow_since
@@ -93,25 +92,26 @@ class Stationarity:
             return cut_bound
         return grown(whole, self.config.moving_shift_m)
 
-    @property
-    def jitter_m(self) -> float:
-        """How far a still object's centre is seen from its anchor by noise alone: a
-        quarter of the shift that counts as motion for its last observation,
-        ``moving_shift_round_m`` for a fitted ball (its centre jitters by a fraction of a
-        millimetre), else ``moving_shift_m`` (a box's fit by a few). A ball's 5 mm (a
-        quarter of a box's shift) took its first frame after a start, 4.7 mm out, for rest."""
+    def shift_m(self, round_fit: bool) -> float:
+        """How far a still object's centre must leave its anchor to be moving:
+        ``moving_shift_round_m`` for a fitted ball (the fit pins its centre to a fraction of
+        a millimetre), else ``moving_shift_m`` (a box's fit jitters by a few)."""
         c = self.config
-        return JITTER_SHARE * (c.moving_shift_round_m if self._round else c.moving_shift_m)
+        return c.moving_shift_round_m if round_fit else c.moving_shift_m
+
+    def jitter_m(self, round_fit: bool) -> float:
+        """How far a still object's centre is seen from its anchor by noise alone: a
+        quarter of its `shift_m`. A ball's 5 mm (a quarter of a box's shift) took its first
+        frame after a start, 4.7 mm out, for rest."""
+        return JITTER_SHARE * self.shift_m(round_fit)
 
     def update(self, stamp: float, position: np.ndarray, velocity: np.ndarray,
                round_fit: bool = False) -> np.ndarray:
         """Take one observation; the velocity to report (zero while still). ``round_fit``:
-        the observation is a fitted ball, whose centre the fit pins to a fraction of a
-        millimetre, so it is seen to leave its anchor by ``moving_shift_round_m``."""
+        the observation is a fitted ball (`shift_m`)."""
         c = self.config
-        self._round = round_fit
         speed = float(np.linalg.norm(velocity))
-        shift = c.moving_shift_round_m if round_fit else c.moving_shift_m
+        shift = self.shift_m(round_fit)
         if self.still:
             if speed > c.moving_speed_mps or float(
                     np.linalg.norm(position - self.anchor)) > shift:

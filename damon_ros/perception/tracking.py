@@ -230,7 +230,8 @@ class _TrackState:
             self.velocity = self.stillness.update(stamp, shape.position, velocity,
                                                   detection.round)
             if was_still and not self.stillness.still:  # it has just started to move
-                since = self.motion.since_rest(self.stillness.anchor, self.stillness.jitter_m)
+                since = self.motion.since_rest(self.stillness.anchor,
+                                               self.stillness.jitter_m(detection.round))
                 if since is not None:
                     self.velocity = since
 
