@@ -399,7 +399,7 @@ def _xyz(pose_stamped) -> np.ndarray:
 
 def _farther_goal(cell: Cell):
     """The goal farther from the arm: the test before may have ended at either, or between
-    them when a loaded machine stopped it: a 0.09 s move once never reached the speed)."""
+    them when a loaded machine stopped it (a 0.09 s move once never reached the speed)."""
     here = tcp_goal(cell.q())[0]
     return max((GOAL_A, GOAL_B), key=lambda g: float(np.linalg.norm(here - g[0])))
 
