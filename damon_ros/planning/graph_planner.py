@@ -173,6 +173,19 @@ CLEARANCES_KEPT = 8
 KEPT_START_RAD = 1e-3
 """A search starting this close to where the last route found started (an arm at rest
 there) tries that route first (`GraphPlanner._kept`)."""
+RETRY_AROUND_S = 0.005
+"""A holding arm's retry may leave work to the next retry (`GraphPlanner._may_defer`): it
+searches around the predicted region of a mover that refused its route only when it has
+taken less than this so far, and then on the graph alone. Those second searches, with
+RRT-Connect where the graph had no route, were most of the retries over 10 ms."""
+RETRY_DEFERRALS = 3
+"""Retries in a row that may leave work to the next: then one searches in full, so a route
+that needs the full search is still found (after at most this many retries' wait)."""
+RETRY_GRAPH_S = 0.002
+"""A holding arm's retry that may defer and whose graph search found no route after longer
+than this leaves RRT-Connect to the next retry, whose graph then hands over after
+QUICK_HANDOVER_SHARE of its budget: a graph miss and a sampling search in one retry took
+8-13 ms."""
 
 
 @dataclass
@@ -371,6 +384,9 @@ class GraphPlanner:
         self._graph_missed = False  # the last route toward this goal: the graph had none
         self._kept_route: tuple[np.ndarray, object, str] | None = None  # `_kept`'s
         self._rerouting = False  # during `replan` (`_kept`)
+        self._may_defer_now = False  # `_may_defer`, decided when a retry begins
+        self._deferred = False  # this search left work to the next retry
+        self._deferrals = 0  # retries in a row that left work to the next
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
         self._clearances: list[tuple[bytes, tuple, float]] = []  # `clearance`'s, newest first
         # during `_route_in_time`: {"query": the last route search's `_Query`}, which a
@@ -521,7 +537,7 @@ class GraphPlanner:
             self.goal_q = None
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
         if self.goal_q is None or not np.array_equal(self.goal_q, q_goal):
-            self._fallback_failures = 0
+            self._fallback_failures = self._deferrals = 0
             self._graph_missed = False
         self.goal_q = q_goal
         result = self._route_in_time(q_start, qd_start, q_goal, scene)
@@ -530,10 +546,11 @@ class GraphPlanner:
         return result
 
     def replan(self, q_now: np.ndarray, obstacles=(), qd_now=None,
-               escalate: bool = True) -> PlanResult:
+               escalate: bool = True, defer: bool = False) -> PlanResult:
         """Re-route from the current state toward the goal of the last successful plan.
         ``escalate`` False: the sampling fallback keeps its first budget (a re-route on a
-        threat: `_fallback`)."""
+        threat: `_fallback`). ``defer`` (a holding arm's retry, whose arm holds a certified
+        stop): a slow search may be left to the next retry (`_may_defer`)."""
         t0 = time.perf_counter()
         if self.goal_q is None:
             return PlanResult(False, "no goal to re-plan toward")
@@ -543,10 +560,13 @@ class GraphPlanner:
             return PlanResult(False, problem)
         self._escalate = escalate
         self._rerouting = True
+        self._may_defer_now = defer and self._deferrals < RETRY_DEFERRALS
+        self._deferred = False
         try:
             result = self._route_in_time(q_now, qd_now, self.goal_q, Scene.of(obstacles))
         finally:
             self._escalate, self._rerouting = True, False
+        self._deferrals = self._deferrals + 1 if self._deferred else 0
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
 
@@ -572,6 +592,7 @@ class GraphPlanner:
     def _route_around_movers(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
         """`_route_in_time` for a scene with movers; a search around a predicted region
         takes over what the search before it decided (`self._reuse`)."""
+        started = time.perf_counter()
         result = self._route_moving(q_start, qd_start, q_goal, scene)
         t0 = time.perf_counter()
         margin = self._mover_margin(q_start, scene)
@@ -591,10 +612,13 @@ class GraphPlanner:
             # a region over the goal or the start leaves no route around it: refuse now
             hopeless = min(self.clearance(q_goal, (region,)),
                            self.clearance(q_start, (region,))) <= margin
-            if attempt == self.config.space_time_reroutes or hopeless:
+            late = self._may_defer() and time.perf_counter() - started > RETRY_AROUND_S
+            self._deferred |= late
+            if attempt == self.config.space_time_reroutes or hopeless or late:
+                why = "; a retry searches around it only when quick" if late else ""
                 result = PlanResult(False, f"no route certified in space and time: "
-                                    f"{contact.describe()}; holding position", goal_q=q_goal,
-                                    edges_checked=result.edges_checked)
+                                    f"{contact.describe()}{why}; holding position",
+                                    goal_q=q_goal, edges_checked=result.edges_checked)
                 break
             scene = replace(scene, ahead=(*scene.ahead, region))
             result = self._route_moving(q_start, qd_start, q_goal, scene)
@@ -961,7 +985,8 @@ class GraphPlanner:
             result = PlanResult(True, "", kept[0], kept[1], q_goal, source=kept[2])
             result.timing_ms["search"] = 1e3 * (time.perf_counter() - t0)
             return result
-        if self._graph_missed:  # the graph had no route here last time: hand over sooner
+        missed_before = self._graph_missed
+        if missed_before:  # the graph had no route here last time: hand over sooner
             query.deadline = min(query.deadline,
                                  t0 + QUICK_HANDOVER_SHARE * self.config.graph_budget())
         order = query.order
@@ -986,7 +1011,11 @@ class GraphPlanner:
             budget = " within the time budget" if time.perf_counter() >= query.deadline else ""
             result.reason = (f"no certified route to the goal in the graph{budget} "
                              f"({query.checked} edges checked, {query.rejected} blocked)")
-            path, source, note = self._fallback(query)
+            deferred = self._may_defer() and (around_region or (
+                not missed_before and t_search - t0 > RETRY_GRAPH_S))
+            self._deferred |= deferred
+            path, source, note = (None, "", "; RRT-Connect is left to the next retry") \
+                if deferred else self._fallback(query)
             if path is None:
                 result.reason += f"{note}; holding position"
             else:
@@ -1080,6 +1109,14 @@ class GraphPlanner:
         margins[0] = min(margins[0], query.start_margin)
         return self.robot.spheres.route_clear(path, margins, self.config.resolution,
                                               query.scene.ahead)
+
+    def _may_defer(self) -> bool:
+        """Whether this search may leave work to the next retry (RETRY_AROUND_S,
+        RETRY_GRAPH_S): a holding arm's retry (`replan` with ``defer``, from rest), after
+        fewer than RETRY_DEFERRALS such retries in a row. The mover that refused a route
+        has usually moved on by the next retry, and the route kept (`_kept`) or a quick
+        search then passes."""
+        return self._rerouting and self._may_defer_now and not self._moving_start
 
     def _fallback(self, query: _Query) -> tuple[np.ndarray | None, str, str]:
         """A stored route (`_from_experience`), else RRT-Connect under the same checker,

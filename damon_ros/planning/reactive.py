@@ -209,6 +209,7 @@ class RuntimeStats:
     replan_latency_ms: list[float] = field(default_factory=list)
     # per re-route: a holding arm's retry that found a route, not one on a threat or stall
     replan_resumed: list[bool] = field(default_factory=list)
+    retry_failed_ms: list[float] = field(default_factory=list)  # a holding arm's, no route
     plan_latency_ms: list[float] = field(default_factory=list)
 
 
@@ -366,7 +367,9 @@ class ReactivePlanner:
                 t0 = time.perf_counter()
                 event = self._reroute(q_now, shapes, "route found again; resuming", qd_now)
                 if event is None:
-                    self.retries.failed(t, time.perf_counter() - t0, self._failure, shapes)
+                    spent = time.perf_counter() - t0
+                    self.stats.retry_failed_ms.append(1e3 * spent)
+                    self.retries.failed(t, spent, self._failure, shapes)
             return event
         if self._stalled(t, q_now):
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
@@ -483,8 +486,9 @@ class ReactivePlanner:
         mover that had been at rest."""
         t0 = time.perf_counter()
         # only a holding arm's retries may search longer each time (`GraphPlanner._fallback`)
-        result = self.planner.replan(q_now, shapes, qd_now=qd_now,
-                                     escalate=self.state == "holding")
+        holding = self.state == "holding"  # its retries may also leave work to the next
+        result = self.planner.replan(q_now, shapes, qd_now=qd_now, escalate=holding,
+                                     defer=holding)
         latency = 1e3 * (time.perf_counter() - t0)
         if not result.success:
             self._failure = result.reason

@@ -59,6 +59,7 @@ class RunRecord:
     replans: int = 0
     replan_latency_ms: list[float] = field(default_factory=list)
     replan_resumed: list[bool] = field(default_factory=list)  # each: a holding arm's retry
+    retry_failed_ms: list[float] = field(default_factory=list)  # holding retries without a route
     path_length_rad: float = 0.0
     max_joint_velocity: float = 0.0
     max_joint_acceleration: float = 0.0
@@ -319,6 +320,7 @@ def _finish(record: RunRecord, runtime: ReactivePlanner, scenario: Scenario,
     record.holds = runtime.stats.holds
     record.replan_latency_ms = [round(x, 3) for x in runtime.stats.replan_latency_ms]
     record.replan_resumed = list(runtime.stats.replan_resumed)
+    record.retry_failed_ms = [round(x, 3) for x in runtime.stats.retry_failed_ms]
     record.success = record.success and not record.collided
     record.total_time_s = t if record.success else math.nan
     if not record.success and record.error is None:

@@ -219,7 +219,7 @@ def band_summary(records: list[dict]) -> str:
     header = (f"{'band':<14} {'planner':<12} {'runs':>4} {'success':>8} {'contacts':>8} "
               f"{'clr min mm':>10} {'clr p5 mm':>9} {'clr p50 mm':>10} {'replans':>7} "
               f"{'replan p50 ms':>13} {'replan p99 ms':>13} {'replan max ms':>13} "
-              f"{'exec p99 ms':>11}")
+              f"{'exec p99 ms':>11} {'failed retries':>14} {'failed p99 ms':>13}")
     lines = [header, "-" * len(header)]
     for (band, planner), rs in sorted(groups.items()):
         clear = [1e3 * r["min_clearance_m"] for r in rs if r.get("min_clearance_m") is not None]
@@ -227,6 +227,7 @@ def band_summary(records: list[dict]) -> str:
         executing = [x for r in rs for x, resumed in zip(
             r.get("replan_latency_ms") or [], r.get("replan_resumed") or [], strict=False)
             if not resumed]
+        failed = [x for r in rs for x in (r.get("retry_failed_ms") or [])]
         lines.append(
             f"{band:<14} {planner:<12} {len(rs):>4} "
             f"{100 * np.mean([bool(r.get('success')) for r in rs]):>7.1f}% "
@@ -234,7 +235,8 @@ def band_summary(records: list[dict]) -> str:
             f"{min(clear, default=float('nan')):>10.1f} {_pct(clear, 5):>9.1f} "
             f"{_pct(clear, 50):>10.1f} {len(replans):>7} "
             f"{_pct(replans, 50):>13.2f} {_pct(replans, 99):>13.2f} "
-            f"{max(replans, default=float('nan')):>13.2f} {_pct(executing, 99):>11.2f}")
+            f"{max(replans, default=float('nan')):>13.2f} {_pct(executing, 99):>11.2f} "
+            f"{len(failed):>14} {_pct(failed, 99):>13.2f}")
     return "\n".join(lines)
 
 

@@ -262,7 +262,7 @@ class _NoRoute(GraphPlanner):
     """The shipped planner with no route and no escape to be found: what is left is to
     stop or to follow on."""
 
-    def replan(self, q_now, obstacles=(), qd_now=None, escalate=True):
+    def replan(self, q_now, obstacles=(), qd_now=None, escalate=True, defer=False):
         return PlanResult(False, "no route (test)")
 
     def escape(self, q_now, obstacles, candidates=96, rng=None, qd_now=None, started=None):

@@ -4,6 +4,8 @@ and a failing search escalates instead of repeating itself."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -132,6 +134,44 @@ def test_where_the_graph_missed_a_goal_its_next_search_there_hands_over_sooner(
     other = planner.plan(SCENE.start, goal, obstacles).goal_q.copy()
     other[0] += 0.05
     assert plan_and_handover(other) == 0.0  # another goal: the full handover again
+
+
+def test_a_holding_retry_leaves_sampling_after_a_slow_graph_miss_to_the_next_retry(
+        planner, monkeypatch):
+    """A holding arm's retry (`replan` with ``defer``) whose graph search found nothing after
+    more than RETRY_GRAPH_S, where the graph had found the last route, leaves RRT-Connect to
+    the next retry and says so; at most RETRY_DEFERRALS retries in a row, then one searches
+    in full and finds the route. A retry after a graph miss (whose graph hands over sooner)
+    and a re-route without ``defer`` search in full at once."""
+    obstacles = SCENE.obstacles_at(0.0)
+    assert planner.plan(SCENE.start, pose_goal(SCENE), obstacles).success
+    fallbacks, real = [], planner._fallback
+
+    def fallback(query):
+        fallbacks.append(query)
+        return real(query)
+
+    def slow_miss(query, active):
+        time.sleep(2 * graph_planner.RETRY_GRAPH_S)
+        return None
+
+    monkeypatch.setattr(planner, "_fallback", fallback)
+    monkeypatch.setattr(planner, "_lazy_astar", slow_miss)
+    monkeypatch.setattr(planner, "_kept", lambda query: None)  # every retry searches
+
+    def retry(defer: bool = True):
+        planner._graph_missed = False  # as after a route the graph found
+        return planner.replan(SCENE.start, obstacles, defer=defer)
+
+    for _ in range(graph_planner.RETRY_DEFERRALS):
+        result = retry()
+        assert not result.success and "left to the next retry" in result.reason
+    assert not fallbacks
+    assert retry().success and len(fallbacks) == 1  # in full after the deferrals
+    assert not retry().success  # a new run of deferrals
+    assert planner.replan(SCENE.start, obstacles, defer=True).success  # the graph missed
+    assert len(fallbacks) == 2
+    assert retry(defer=False).success and len(fallbacks) == 3
 
 
 def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):

@@ -14,6 +14,7 @@ from damon_ros.planning import graph_planner
 from damon_ros.planning.graph_planner import Scene
 from damon_ros.planning.reactive import ReactivePlanner, RuntimeConfig, swept
 from damon_ros.planning.space_time import (
+    Contact,
     Prediction,
     check_instants,
     first_contact,
@@ -243,6 +244,44 @@ def test_a_search_around_a_region_decides_every_edge_as_a_fresh_one(planner, fas
         assert answers != decided  # the region mattered
         assert np.array_equal(reused.search.blocked, fresh.search.blocked)
     assert any(not d and a for d, a in zip(decided, answers, strict=True))  # a lower margin
+
+
+def test_a_slow_holding_retry_leaves_the_search_around_a_region_to_the_next_one(
+        planner, fast, monkeypatch):
+    """A holding arm's retry (`replan` with ``defer``) whose route a mover's prediction
+    refused searches around the predicted region only when it is quick (RETRY_AROUND_S;
+    here it never is): it holds and says why; after RETRY_DEFERRALS such retries in a row
+    the next one searches around the region, as a re-route without ``defer`` does at once."""
+    q0, q1 = _long_move()
+    assert planner.plan(q0, q1, Scene((), ())).success
+    ball = Shape("sphere", (0.05,), np.array([-0.8, 0.8, 1.5]), name="mover")
+    v = np.array([0.0, 0.0, -0.3])
+    scene = Scene((ball,), (swept(ball, v, HORIZON),), ((ball, v),), AGE)
+    region = Shape("sphere", (0.05,), np.array([0.0, 0.7, 1.3]), name="mover")
+    searches = []
+    real = planner._route_moving
+
+    def route_moving(*args):
+        searches.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(planner, "_deferrals", 0)
+    monkeypatch.setattr(graph_planner, "RETRY_AROUND_S", 0.0)
+    monkeypatch.setattr(planner, "_route_moving", route_moving)
+    monkeypatch.setattr(planner, "_delayed", lambda *args: None)
+    monkeypatch.setattr(planner, "_contact", lambda trajectory, scene, margin: Contact(
+        0.5 * trajectory.duration, 0, q0, region, 0.0))  # every route is refused
+
+    def searches_of(defer: bool) -> int:
+        searches.clear()
+        result = planner.replan(q0, scene, defer=defer)
+        assert not result.success
+        assert ("only when quick" in result.reason) == (len(searches) == 1)
+        return len(searches)
+
+    assert [searches_of(True) for _ in range(graph_planner.RETRY_DEFERRALS + 1)] == [
+        *[1] * graph_planner.RETRY_DEFERRALS, 2]
+    assert searches_of(False) == 2
 
 
 def test_least_distance_is_the_least_distance_to_the_movers_where_they_are(fast):

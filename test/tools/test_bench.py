@@ -119,20 +119,23 @@ def test_the_stress_section_is_written_per_band_and_kept_apart(tmp_path):
     assert page.read_text().count("<!-- stress -->") == 1
 
 
-def test_the_band_table_gives_the_executing_arms_re_routes_their_own_p99():
+def test_the_band_table_gives_the_executing_arms_re_routes_their_own_p99_and_failed_retries():
     from damon_ros.tools.bench import band_summary
 
     runs = [{"band": "0.1-0.3 m/s", "planner": "damon", "success": True, "collided": False,
              "min_clearance_m": 0.02, "replan_latency_ms": [2.0, 30.0, 3.0],
-             "replan_resumed": [False, True, False]},
+             "replan_resumed": [False, True, False], "retry_failed_ms": [5.0, 9.0]},
             {"band": "0.1-0.3 m/s", "planner": "damon", "success": True, "collided": False,
              "min_clearance_m": 0.03, "replan_latency_ms": [4.0]}]  # an older record
     header, _, row = band_summary(runs).splitlines()
-    assert header.split()[-3:] == ["exec", "p99", "ms"]
-    cells = row.split()  # ..., replans, p50, p99, max, exec p99
-    assert cells[-5] == "4" and float(cells[-2]) == 30.0
+    assert header.split()[-8:] == ["exec", "p99", "ms", "failed", "retries", "failed", "p99",
+                                   "ms"]
+    cells = row.split()  # ..., replans, p50, p99, max, exec p99, failed retries, failed p99
+    assert cells[-7] == "4" and float(cells[-4]) == 30.0
     # the holding arm's 30 ms retry is left out; the older record has no flags to read
-    assert float(cells[-1]) == round(float(np.percentile([2.0, 3.0], 99)), 2)
+    assert float(cells[-3]) == round(float(np.percentile([2.0, 3.0], 99)), 2)
+    # a holding arm's retries that found no route: counted apart, with their own p99
+    assert cells[-2] == "2" and float(cells[-1]) == round(float(np.percentile([5.0, 9.0], 99)), 2)
 
 
 def test_the_stress_view_groups_runs_by_mover_speed_band(tmp_path, capsys):
