@@ -612,7 +612,8 @@ class GraphPlanner:
             # a region over the goal or the start leaves no route around it: refuse now
             hopeless = min(self.clearance(q_goal, (region,)),
                            self.clearance(q_start, (region,))) <= margin
-            late = self._may_defer() and time.perf_counter() - started > RETRY_AROUND_S
+            late = at_rest and self._may_defer() and \
+                time.perf_counter() - started > RETRY_AROUND_S
             self._deferred |= late
             if attempt == self.config.space_time_reroutes or hopeless or late:
                 why = "; a retry searches around it only when quick" if late else ""
