@@ -384,7 +384,7 @@ class GraphPlanner:
         self._graph_missed = False  # the last route toward this goal: the graph had none
         self._kept_route: tuple[np.ndarray, object, str] | None = None  # `_kept`'s
         self._rerouting = False  # during `replan` (`_kept`)
-        self._may_defer_now = False  # `_may_defer`, decided when a retry begins
+        self._defer = False  # during `replan` with ``defer`` (`_may_defer`)
         self._deferred = False  # this search left work to the next retry
         self._deferrals = 0  # retries in a row that left work to the next
         self._heuristic_cache: tuple[np.ndarray, np.ndarray] | None = None  # (goal, A*'s)
@@ -559,13 +559,11 @@ class GraphPlanner:
         if problem:
             return PlanResult(False, problem)
         self._escalate = escalate
-        self._rerouting = True
-        self._may_defer_now = defer and self._deferrals < RETRY_DEFERRALS
-        self._deferred = False
+        self._rerouting, self._defer, self._deferred = True, defer, False
         try:
             result = self._route_in_time(q_now, qd_now, self.goal_q, Scene.of(obstacles))
         finally:
-            self._escalate, self._rerouting = True, False
+            self._escalate, self._rerouting, self._defer = True, False, False
         self._deferrals = self._deferrals + 1 if self._deferred else 0
         result.timing_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return result
@@ -1117,7 +1115,7 @@ class GraphPlanner:
         fewer than RETRY_DEFERRALS such retries in a row. The mover that refused a route
         has usually moved on by the next retry, and the route kept (`_kept`) or a quick
         search then passes."""
-        return self._rerouting and self._may_defer_now and not self._moving_start
+        return self._defer and self._deferrals < RETRY_DEFERRALS and not self._moving_start
 
     def _fallback(self, query: _Query) -> tuple[np.ndarray | None, str, str]:
         """A stored route (`_from_experience`), else RRT-Connect under the same checker,
