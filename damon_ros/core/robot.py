@@ -32,6 +32,7 @@ from damon_ros.core.collision import (
 )
 from damon_ros.core.kinematics import FINGER_OPENING, TCP_FRAME, Chain, load_arm
 from damon_ros.core.limits import IK_LIMIT_MARGIN, READY, JointLimits, joint_limits
+from damon_ros.core.self_collision import SelfCollisionScreen
 from damon_ros.core.shapes import Shape
 
 SELF_FREE_KEPT = 4096
@@ -109,6 +110,7 @@ class Robot:
         self.model, self.data = model, model.createData()
         self.mesh_geom = convex_meshes(model, mesh_geom)
         self.mesh_data = pin.GeometryData(self.mesh_geom)
+        self._self_screen = SelfCollisionScreen(model, self.mesh_geom)
         self._mesh_links = [link_name(model, o) for o in self.mesh_geom.geometryObjects]
         self._mesh_bounds()
         self.tcp_id = model.getFrameId(TCP_FRAME)
@@ -390,8 +392,14 @@ class Robot:
     def self_collision(self, q, checked: bool = True) -> bool:
         """Exact self-collision of the meshes, ignoring the SRDF's disabled pairs (adjacent
         links and pairs that can never touch). ``checked=False`` skips the input check for
-        callers that made ``q`` themselves (the collector, a million times)."""
+        callers that made ``q`` themselves (the collector, a million times). A state whose
+        links' boxes keep apart (`SelfCollisionScreen`) is free without the meshes."""
         q = self._check_q(q) if checked else q
+        if self._self_screen.clear(q[None])[0]:
+            return False
+        return self._mesh_self_collision(q)
+
+    def _mesh_self_collision(self, q: np.ndarray) -> bool:
         return bool(pin.computeCollisions(self.model, self.data, self.mesh_geom, self.mesh_data,
                                           q, True))
 
@@ -503,9 +511,10 @@ class Robot:
         known = self._self_free.get(key)
         if known is None:
             n = self.steps(q0, q1, resolution)
-            # states between two checked ends: their input check was ~40 % of the time
-            known = not any(self.self_collision(q0 + s * (q1 - q0), checked=False)
-                            for s in np.linspace(0.0, 1.0, n + 1))
+            Q = q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)
+            # the meshes only where the links' boxes meet (`SelfCollisionScreen`)
+            known = not any(self._mesh_self_collision(q)
+                            for q in Q[~self._self_screen.clear(Q)])
             if len(self._self_free) >= SELF_FREE_KEPT:
                 self._self_free.clear()
             self._self_free[key] = known

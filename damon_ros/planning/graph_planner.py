@@ -410,6 +410,7 @@ class GraphPlanner:
         probe = Shape("sphere", (0.05,), np.array([2.0, 2.0, 2.0]))
         self.segment_free(q, q + 0.01, [probe], self.config.margin)
         self.robot.distances(q[None], [probe])
+        self.robot.self_collision(q)  # the link-box screen's kernel
         if self.robot.collision == "fast":  # the exact band's fast side
             self.robot.spheres.band_states(q[None], [probe], self.config.margin, 0.0, 1)
         from damon_ros.planning import space_time

@@ -106,7 +106,9 @@ def measure(repeats: int = 200, seed: int = 0) -> list[tuple[str, float, str]]:
         ("segment_free per edge, public scenarios (see note)", _median_us(
             _cycle_call(fast, edges), repeats), f"{per_state:.1f} µs/state; {edge_note}"),
         ("self-collision, mesh model", _median_us(
-            lambda: mesh.self_collision(q_next()), repeats), "SRDF pairs, convex GJK"),
+            lambda: mesh.self_collision(q_next()), repeats), "link boxes, then convex GJK"),
+        ("self-collision, meshes alone", _median_us(
+            lambda: mesh._mesh_self_collision(q_next()), repeats), "SRDF pairs, convex GJK"),
     ]
 
 
