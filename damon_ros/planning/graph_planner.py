@@ -596,14 +596,21 @@ class GraphPlanner:
         t0 = time.perf_counter()
         margin = self._mover_margin(q_start, scene)
         at_rest = qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S
+
+        def late() -> bool:  # a holding retry that spent RETRY_AROUND_S leaves the rest
+            return at_rest and self._may_defer() and \
+                time.perf_counter() - started > RETRY_AROUND_S
+
         for attempt in range(self.config.space_time_reroutes + 1):
             if not result.success or result.trajectory is None:
                 break
             contact = self._contact(result.trajectory, scene, margin)
             if contact is None:
                 break
+            # the route around a region, refused in turn, is re-timed only when quick
+            skip_delays = attempt > 0 and late()
             delayed = self._delayed(result.trajectory, scene, margin,
-                                    contact.time_s) if at_rest else None
+                                    contact.time_s) if at_rest and not skip_delays else None
             if delayed is not None:  # re-timed: wait where it stands until the mover passed
                 result.trajectory = delayed
                 break
@@ -611,11 +618,10 @@ class GraphPlanner:
             # a region over the goal or the start leaves no route around it: refuse now
             hopeless = min(self.clearance(q_goal, (region,)),
                            self.clearance(q_start, (region,))) <= margin
-            late = at_rest and self._may_defer() and \
-                time.perf_counter() - started > RETRY_AROUND_S
-            self._deferred |= late
-            if attempt == self.config.space_time_reroutes or hopeless or late:
-                why = "; a retry searches around it only when quick" if late else ""
+            late_now = skip_delays or late()
+            self._deferred |= late_now
+            if attempt == self.config.space_time_reroutes or hopeless or late_now:
+                why = "; a retry searches around it only when quick" if late_now else ""
                 result = PlanResult(False, f"no route certified in space and time: "
                                     f"{contact.describe()}{why}; holding position",
                                     goal_q=q_goal, edges_checked=result.edges_checked)

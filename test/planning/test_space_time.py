@@ -284,6 +284,45 @@ def test_a_slow_holding_retry_leaves_the_search_around_a_region_to_the_next_one(
     assert searches_of(False) == 2
 
 
+def test_a_slow_holding_retry_leaves_re_timing_the_route_around_a_region_to_the_next_one(
+        planner, fast, monkeypatch):
+    """The route found around a predicted region, refused in turn, is re-timed (delayed
+    starts) in a holding retry only while the retry is quick (RETRY_AROUND_S, here spent
+    during the second search): the retry holds and says why. Without ``defer`` both routes
+    get their delayed starts."""
+    q0, q1 = _long_move()
+    assert planner.plan(q0, q1, Scene((), ())).success
+    ball = Shape("sphere", (0.05,), np.array([-0.8, 0.8, 1.5]), name="mover")
+    v = np.array([0.0, 0.0, -0.3])
+    scene = Scene((ball,), (swept(ball, v, HORIZON),), ((ball, v),), AGE)
+    region = Shape("sphere", (0.05,), np.array([0.0, 0.7, 1.3]), name="mover")
+    delays = []
+    real = planner._route_moving
+
+    def route_moving(*args):
+        result = real(*args)
+        if len(args[3].ahead) > len(scene.ahead):  # the search around the region took long
+            monkeypatch.setattr(graph_planner, "RETRY_AROUND_S", 0.0)
+        return result
+
+    monkeypatch.setattr(planner, "_deferrals", 0)
+    monkeypatch.setattr(planner, "_route_moving", route_moving)
+    monkeypatch.setattr(planner, "_delayed", lambda *args: delays.append(args) and None)
+    monkeypatch.setattr(planner, "_contact", lambda trajectory, scene, margin: Contact(
+        0.5 * trajectory.duration, 0, q0, region, 0.0))  # every route is refused
+
+    def delays_of(defer: bool) -> int:
+        delays.clear()
+        monkeypatch.setattr(graph_planner, "RETRY_AROUND_S", 1e9)
+        result = planner.replan(q0, scene, defer=defer)
+        assert not result.success
+        assert ("only when quick" in result.reason) == defer
+        return len(delays)
+
+    assert delays_of(True) == 1
+    assert delays_of(False) == 2
+
+
 def test_least_distance_is_the_least_distance_to_the_movers_where_they_are(fast):
     """The compiled loop against one query per instant, movers of every packed kind (a
     ball, a yawed box, a point set's hull) translated by v * (age + t); with a floor it
