@@ -181,6 +181,11 @@ RRT-Connect where the graph had no route, were most of the retries over 10 ms.""
 RETRY_DEFERRALS = 3
 """Retries in a row that may leave work to the next: then one searches in full, so a route
 that needs the full search is still found (after at most this many retries' wait)."""
+RETRY_SHORTEN_S = 0.004
+"""A holding arm's retry that may defer and has taken longer than this when RRT-Connect
+returns a route leaves the route's shortening (and its certification) to the next retry,
+which takes it up where this one stopped (`GraphPlanner._pending_route`): sampling and
+shortening in one retry were most of the retries still over 10 ms (2-11 ms each)."""
 RETRY_GRAPH_S = 0.002
 """A holding arm's retry that may defer and whose graph search found no route after longer
 than this leaves RRT-Connect to the next retry, whose graph then hands over after
@@ -382,6 +387,8 @@ class GraphPlanner:
         self._moving_start = False  # routing from a moving arm (`_route_moving`): no escalation
         self._escalate = True  # False during a re-route on a threat (`replan`): no escalation
         self._graph_missed = False  # the last route toward this goal: the graph had none
+        self._pending: np.ndarray | None = None  # a sampled route left to the next retry
+        self._retry_started = 0.0  # `time.perf_counter` at the start of this `replan`
         self._kept_route: tuple[np.ndarray, object, str] | None = None  # `_kept`'s
         self._rerouting = False  # during `replan` (`_kept`)
         self._defer = False  # during `replan` with ``defer`` (`_may_defer`)
@@ -539,7 +546,7 @@ class GraphPlanner:
             return PlanResult(False, reason, timing_ms={"ik": 1e3 * (t_ik - t0)})
         if self.goal_q is None or not np.array_equal(self.goal_q, q_goal):
             self._fallback_failures = self._deferrals = 0
-            self._graph_missed = False
+            self._graph_missed, self._pending = False, None
         self.goal_q = q_goal
         result = self._route_in_time(q_start, qd_start, q_goal, scene)
         result.timing_ms["ik"] = 1e3 * (t_ik - t0)
@@ -552,7 +559,7 @@ class GraphPlanner:
         ``escalate`` False: the sampling fallback keeps its first budget (a re-route on a
         threat: `_fallback`). ``defer`` (a holding arm's retry, whose arm holds a certified
         stop): a slow search may be left to the next retry (`_may_defer`)."""
-        t0 = time.perf_counter()
+        t0 = self._retry_started = time.perf_counter()
         if self.goal_q is None:
             return PlanResult(False, "no goal to re-plan toward")
         q_now = np.asarray(q_now, float)
@@ -1136,6 +1143,9 @@ class GraphPlanner:
         source, note for the reason)."""
         if self.config.fallback_budget_s <= 0.0:
             return None, "", ""
+        path = self._pending_route(query)
+        if path is not None:
+            return path, "rrtconnect", ""
         path = self._from_experience(query)
         if path is not None:  # the same blockage as before: no sampling search
             return path, "experience", ""
@@ -1147,10 +1157,13 @@ class GraphPlanner:
         budget = self._fallback_budget(attempt if self._escalate and not self._moving_start
                                        else 0)
         raw = self._sampling_route(query, budget, seed=attempt)
+        if raw is not None and self._may_defer() and \
+                time.perf_counter() - self._retry_started > RETRY_SHORTEN_S:
+            self._pending, self._deferred = raw, True
+            return None, "", "; RRT-Connect found a route, shortened by the next retry"
         path = None if raw is None else self._shortened(raw, query)
         if path is not None:
-            self._fallback_failures = 0
-            self.experience = [*self.experience, path][-self.config.experience_routes:]
+            self._found(path)
             return path, "rrtconnect", ""
         self._fallback_failures += 1
         found = "a route that failed certification" if raw is not None else "no route"
@@ -1158,6 +1171,26 @@ class GraphPlanner:
                           f"{attempt + 1}; the next one gets "
                           f"{self._fallback_budget(attempt + 1):.2f} s "
                           "and new samples)")
+
+    def _found(self, path: np.ndarray) -> None:
+        """A sampled route was certified: the budget starts over and the route is kept."""
+        self._fallback_failures = 0
+        self.experience = [*self.experience, path][-self.config.experience_routes:]
+
+    def _pending_route(self, query: _Query) -> np.ndarray | None:
+        """The route RRT-Connect found in the last retry (`RETRY_SHORTEN_S`), shortened and
+        certified now, when this query starts where it did (within KEPT_START_RAD: the arm
+        held there) toward the same goal and the fast model still passes it (`_screened`);
+        else None. Taken once either way."""
+        raw, self._pending = self._pending, None
+        if raw is None or not np.array_equal(raw[-1], query.q_goal) or \
+                float(np.max(np.abs(raw[0] - query.q_start))) > KEPT_START_RAD:
+            return None
+        raw = np.vstack([query.q_start[None], raw[1:]])
+        path = self._shortened(raw, query) if self._screened(raw, query) else None
+        if path is not None:
+            self._found(path)
+        return path
 
     def _sampling_route(self, query: _Query, budget: float, seed: int) -> np.ndarray | None:
         """RRT-Connect between the query's ends: compiled over the fast model's spheres

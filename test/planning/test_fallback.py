@@ -174,6 +174,49 @@ def test_a_holding_retry_leaves_sampling_after_a_slow_graph_miss_to_the_next_ret
     assert retry(defer=False).success and len(fallbacks) == 3
 
 
+def test_a_slow_holding_retry_leaves_the_shortening_of_a_sampled_route_to_the_next_retry(
+        planner, monkeypatch):
+    """A holding arm's retry that has taken more than RETRY_SHORTEN_S when RRT-Connect
+    returns a route leaves its shortening to the next retry, which shortens and certifies
+    that route without sampling again. The route is taken up only from where it started; a
+    re-route without ``defer`` shortens at once."""
+    obstacles = SCENE.obstacles_at(0.0)
+    assert planner.plan(SCENE.start, pose_goal(SCENE), obstacles).success
+    samplings, shortenings = [], []
+    real_sampling, real_shortened = planner._sampling_route, planner._shortened
+
+    def sampling(query, budget, seed):
+        samplings.append(seed)
+        return real_sampling(query, budget, seed)
+
+    def shortened(path, query):
+        shortenings.append(path)
+        return real_shortened(path, query)
+
+    monkeypatch.setattr(planner, "_sampling_route", sampling)
+    monkeypatch.setattr(planner, "_shortened", shortened)
+    monkeypatch.setattr(planner, "_lazy_astar", lambda query, active: None)
+    monkeypatch.setattr(planner, "_kept", lambda query: None)
+    monkeypatch.setattr(planner, "_from_experience", lambda query: None)
+    monkeypatch.setattr(graph_planner, "RETRY_SHORTEN_S", 0.0)
+
+    def retry(defer: bool = True, q=SCENE.start):
+        planner._graph_missed = True  # no deferral of the sampling itself
+        return planner.replan(q, obstacles, defer=defer)
+
+    first = retry()
+    assert not first.success and "shortened by the next retry" in first.reason
+    assert len(samplings) == 1 and not shortenings
+    second = retry()
+    assert second.success and second.source == "rrtconnect"
+    assert len(samplings) == 1 and len(shortenings) == 1  # the route of the first retry
+    assert np.array_equal(second.path[0], SCENE.start)
+    assert not retry().success  # a route left to the next retry again...
+    elsewhere = retry(q=SCENE.start + 0.05)  # ...is not taken up from elsewhere
+    assert len(samplings) == 3 and "shortened by the next retry" in elsewhere.reason
+    shortenings.clear()
+    assert retry(defer=False).success and len(shortenings) == 1
+
 def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
     budgets = _failing_searches(planner, monkeypatch)
     reasons = [planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0)).reason
