@@ -246,18 +246,28 @@ def test_a_search_around_a_region_decides_every_edge_as_a_fresh_one(planner, fas
     assert any(not d and a for d, a in zip(decided, answers, strict=True))  # a lower margin
 
 
-def test_a_slow_holding_retry_leaves_the_search_around_a_region_to_the_next_one(
-        planner, fast, monkeypatch):
-    """A holding arm's retry (`replan` with ``defer``) whose route a mover's prediction
-    refused searches around the predicted region only when it is quick (RETRY_AROUND_S;
-    here it never is): it holds and says why; after RETRY_DEFERRALS such retries in a row
-    the next one searches around the region, as a re-route without ``defer`` does at once."""
+def _every_route_refused(planner, monkeypatch):
+    """A planned long move, a mover's scene, and every route refused in space and time (at
+    half its duration, by a region beside the path): (start, scene)."""
     q0, q1 = _long_move()
     assert planner.plan(q0, q1, Scene((), ())).success
     ball = Shape("sphere", (0.05,), np.array([-0.8, 0.8, 1.5]), name="mover")
     v = np.array([0.0, 0.0, -0.3])
     scene = Scene((ball,), (swept(ball, v, HORIZON),), ((ball, v),), AGE)
     region = Shape("sphere", (0.05,), np.array([0.0, 0.7, 1.3]), name="mover")
+    monkeypatch.setattr(planner, "_deferrals", 0)
+    monkeypatch.setattr(planner, "_contact", lambda trajectory, scene, margin: Contact(
+        0.5 * trajectory.duration, 0, q0, region, 0.0))
+    return q0, scene
+
+
+def test_a_slow_holding_retry_leaves_the_search_around_a_region_to_the_next_one(
+        planner, fast, monkeypatch):
+    """A holding arm's retry (`replan` with ``defer``) whose route a mover's prediction
+    refused searches around the predicted region only when it is quick (RETRY_AROUND_S;
+    here it never is): it holds and says why; after RETRY_DEFERRALS such retries in a row
+    the next one searches around the region, as a re-route without ``defer`` does at once."""
+    q0, scene = _every_route_refused(planner, monkeypatch)
     searches = []
     real = planner._route_moving
 
@@ -265,12 +275,9 @@ def test_a_slow_holding_retry_leaves_the_search_around_a_region_to_the_next_one(
         searches.append(args)
         return real(*args)
 
-    monkeypatch.setattr(planner, "_deferrals", 0)
     monkeypatch.setattr(graph_planner, "RETRY_AROUND_S", 0.0)
     monkeypatch.setattr(planner, "_route_moving", route_moving)
     monkeypatch.setattr(planner, "_delayed", lambda *args: None)
-    monkeypatch.setattr(planner, "_contact", lambda trajectory, scene, margin: Contact(
-        0.5 * trajectory.duration, 0, q0, region, 0.0))  # every route is refused
 
     def searches_of(defer: bool) -> int:
         searches.clear()
@@ -290,12 +297,7 @@ def test_a_slow_holding_retry_leaves_re_timing_the_route_around_a_region_to_the_
     starts) in a holding retry only while the retry is quick (RETRY_AROUND_S, here spent
     during the second search): the retry holds and says why. Without ``defer`` both routes
     get their delayed starts."""
-    q0, q1 = _long_move()
-    assert planner.plan(q0, q1, Scene((), ())).success
-    ball = Shape("sphere", (0.05,), np.array([-0.8, 0.8, 1.5]), name="mover")
-    v = np.array([0.0, 0.0, -0.3])
-    scene = Scene((ball,), (swept(ball, v, HORIZON),), ((ball, v),), AGE)
-    region = Shape("sphere", (0.05,), np.array([0.0, 0.7, 1.3]), name="mover")
+    q0, scene = _every_route_refused(planner, monkeypatch)
     delays = []
     real = planner._route_moving
 
@@ -305,11 +307,8 @@ def test_a_slow_holding_retry_leaves_re_timing_the_route_around_a_region_to_the_
             monkeypatch.setattr(graph_planner, "RETRY_AROUND_S", 0.0)
         return result
 
-    monkeypatch.setattr(planner, "_deferrals", 0)
     monkeypatch.setattr(planner, "_route_moving", route_moving)
     monkeypatch.setattr(planner, "_delayed", lambda *args: delays.append(args) and None)
-    monkeypatch.setattr(planner, "_contact", lambda trajectory, scene, margin: Contact(
-        0.5 * trajectory.duration, 0, q0, region, 0.0))  # every route is refused
 
     def delays_of(defer: bool) -> int:
         delays.clear()
