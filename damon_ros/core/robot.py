@@ -197,7 +197,8 @@ class Robot:
     def ik(self, position, orientation, q_near=None, obstacles: Sequence[Shape] = (),
            min_clearance: float = 0.0, n_seeds: int = 32, rng: np.random.Generator | None = None,
            position_tolerance: float = 1e-3, orientation_tolerance: float = 1e-2,
-           max_solutions: int = 3, time_budget_s: float | None = None) -> IKResult:
+           max_solutions: int = 3, time_budget_s: float | None = None,
+           avoid: np.ndarray | None = None, avoid_rad: float = 0.3) -> IKResult:
         """Joint angles that put the TCP at a pose (``orientation`` is ``[x, y, z, w]``),
         within the joint limits, out of self-collision and at least ``min_clearance`` from
         ``obstacles`` (on this robot's collision model).
@@ -206,7 +207,9 @@ class Robot:
         valid solution that one is returned at once, because Newton steps from ``q_near``
         reach the nearby solution with the least joint motion. Otherwise random seeds are
         tried until ``max_solutions`` valid ones are found (or ``n_seeds`` / the time
-        budget run out) and the one nearest ``q_near`` is returned."""
+        budget run out) and the one nearest ``q_near`` is returned. ``avoid``: a solution
+        within ``avoid_rad`` of it in every joint does not count (another solution of the
+        same pose is wanted: `GraphPlanner.resolve_goal`)."""
         t_end = math.inf if time_budget_s is None else time.perf_counter() + time_budget_s
         target, problem = self._ik_target(position, orientation)
         if problem:
@@ -222,6 +225,8 @@ class Robot:
             q, err_p, err_o = self._solve(target, seed)
             if err_p > position_tolerance or err_o > orientation_tolerance:
                 best = min(best, (err_p, err_o))
+                continue
+            if avoid is not None and float(np.max(np.abs(q - avoid))) < avoid_rad:
                 continue
             if not self._ik_valid(q, obstacles, min_clearance):
                 blocked += 1

@@ -96,6 +96,9 @@ PARAMETERS = (
           "(m/s; above a still box's velocity jitter)", 0.0, 1.0),
     Param("resting_buffer_m", 0.05, "a new goal's route keeps this much more from anything "
           "at rest (m; it may start to move; dropped when no route keeps it)", 0.0, 0.5),
+    Param("goal_rechoose_s", 3.0, "a pose goal whose joint configuration no route reached "
+          "for this long while the arm held is planned to another IK solution of the pose "
+          "(s; 0 = never)", 0.0, 60.0),
     Param("monitor_rate_hz", 20.0, "fixed-rate re-check of the remaining path (Hz)",
           0.5, 1000.0),
     Param("perception_timeout_s", 1.0, "obstacle data older than this stops a moving arm "
@@ -184,6 +187,7 @@ class PlannerNode(Node):
             perception_timeout_s=p["perception_timeout_s"],
             goal_wait_s=p["goal_wait_timeout_s"],
             resting_buffer_m=p["resting_buffer_m"],
+            goal_rechoose_s=p["goal_rechoose_s"],
             obstacle_source=self.resolve_topic_name(topics.OBSTACLES)),
             risk=lambda q, shapes: self.model.collision_probability(self.robot, q, shapes),
             on_threat=lambda why: self._publish_stop())

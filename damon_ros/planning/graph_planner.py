@@ -501,13 +501,15 @@ class GraphPlanner:
                             self._start_margin(q, tuple(s for s, _ in scene.moving))))
 
     # ---- goals ----------------------------------------------------------------------
-    def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape]):
-        """Joint goal for a pose (IK nearest ``q_near`` with clearance) or a joint vector.
-        Returns ``(q_goal, reason)``; ``q_goal`` is None when the goal is refused."""
+    def resolve_goal(self, goal, q_near: np.ndarray, obstacles: Sequence[Shape],
+                     avoid: np.ndarray | None = None):
+        """Joint goal for a pose (IK nearest ``q_near`` with clearance; not within 0.3 rad of
+        ``avoid``, when given) or a joint vector. Returns ``(q_goal, reason)``; ``q_goal``
+        is None when the goal is refused."""
         if isinstance(goal, PoseGoal):
             result = self.robot.ik(goal.position, goal.orientation, q_near=q_near,
                                    obstacles=obstacles, min_clearance=self.config.margin,
-                                   n_seeds=self.config.ik_seeds)
+                                   n_seeds=self.config.ik_seeds, avoid=avoid)
             if not result.success:
                 return None, f"goal pose refused: {result.reason}"
             q_goal = np.asarray(result.q, float)

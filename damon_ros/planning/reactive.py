@@ -23,7 +23,7 @@ import numpy as np
 
 from damon_ros.core.hull import few_vertices
 from damon_ros.core.shapes import Shape, grown
-from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, Scene
+from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, PoseGoal, Scene
 from damon_ros.planning.space_time import movers
 
 TRACKING_RAD = 0.05
@@ -197,6 +197,9 @@ class RuntimeConfig:
     obstacle_source: str = "the obstacle topic"  # named in the waiting goal's message
     space_time: bool = True  # timed trajectories checked against the movers' predictions
     resting_buffer_m: float = 0.05  # a new goal's route keeps this much more from things at rest
+    # a pose goal whose joint configuration no route has reached for this long while the arm
+    # holds is re-chosen among the pose's other IK solutions (`_rechoose_goal`); 0 = never
+    goal_rechoose_s: float = 3.0
 
 
 @dataclass
@@ -211,6 +214,7 @@ class RuntimeStats:
     replan_resumed: list[bool] = field(default_factory=list)
     retry_failed_ms: list[float] = field(default_factory=list)  # a holding arm's, no route
     plan_latency_ms: list[float] = field(default_factory=list)
+    goals_rechosen: int = 0  # goal configurations re-chosen after a long hold
 
 
 class ReactivePlanner:
@@ -239,6 +243,8 @@ class ReactivePlanner:
         self._pending_since: float | None = None  # first update that saw it waiting
         self._still_q: np.ndarray | None = None  # stall detection
         self._still_since = 0.0
+        self.goal = None  # the goal being planned for, as given (a pose or joints)
+        self._unreached_since: float | None = None  # first failed retry since a route
         self.stats = RuntimeStats()
 
     def scene(self, obstacles: Sequence[tuple[Shape, np.ndarray]],
@@ -275,7 +281,19 @@ class ReactivePlanner:
                 f"parameter perception_timeout_s = {timeout:g} s): it is planned when fresh "
                 f"data arrives, or dropped after {self.config.goal_wait_s:g} s "
                 "(goal_wait_timeout_s)")
-        self.pending_goal = None
+        self.pending_goal, self.goal, self._unreached_since = None, goal, None
+        result, latency = self._plan(q_now, goal, obstacles, perception_age_s, qd_now)
+        if not result.success:
+            if self.planner.goal_q is None:  # refused: IK, limits, goal in collision
+                self.state = "idle"
+                return Event("refused", result.reason, result, latency)
+            return self._hold(result.reason, result, latency)
+        return self._execute(result, latency)
+
+    def _plan(self, q_now, goal, obstacles, perception_age_s, qd_now
+              ) -> tuple[PlanResult, float]:
+        """`GraphPlanner.plan` keeping `resting_buffer_m` from things at rest where it can;
+        returns the result and its latency (ms)."""
         t0 = time.perf_counter()
         age = _age(perception_age_s)
         buffered = resting_buffered(obstacles, self.config.resting_buffer_m,
@@ -286,12 +304,39 @@ class ReactivePlanner:
         latency = 1e3 * (time.perf_counter() - t0)
         self.stats.plans += 1
         self.stats.plan_latency_ms.append(latency)
+        return result, latency
+
+    def _rechoose_goal(self, t: float, q_now: np.ndarray, obstacles, perception_age_s: float,
+                       qd_now: np.ndarray | None) -> Event | None:
+        """A pose goal's other IK solution, planned from here, once no route has reached the
+        chosen one for `goal_rechoose_s` while the arm held: something came to rest in its
+        way (stress bench, S-v1-1.5-s2709-163: two movers stopped beside the base after the
+        arm escaped them, and the arm held 27 s while every search toward the elbow-out
+        solution failed, RRTConnect's as well). None (hold on) when the pose has no other
+        solution with clearance; where the new one has no route either, the retries go on
+        toward it, and it is re-chosen again after as long."""
+        limit = self.config.goal_rechoose_s
+        if limit <= 0 or not isinstance(self.goal, PoseGoal) or \
+                self._unreached_since is None or t - self._unreached_since < limit:
+            return None
+        held = t - self._unreached_since
+        self._unreached_since = t
+        t0 = time.perf_counter()
+        old = self.planner.goal_q
+        q_alt, _ = self.planner.resolve_goal(self.goal, q_now,
+                                             self.scene(obstacles).now, avoid=old)
+        if q_alt is None:
+            return None
+        result, latency = self._plan(q_now, q_alt, obstacles, perception_age_s, qd_now)
+        if self.planner.goal_q is None:  # refused after all: the old choice stays
+            self.planner.goal_q = old
         if not result.success:
-            if self.planner.goal_q is None:  # refused: IK, limits, goal in collision
-                self.state = "idle"
-                return Event("refused", result.reason, result, latency)
-            return self._hold(result.reason, result, latency)
-        return self._execute(result, latency)
+            return None
+        self.stats.goals_rechosen += 1
+        event = self._execute(result, 1e3 * (time.perf_counter() - t0))
+        event.reason = (f"no route reached the goal's joint configuration for {held:.1f} s; "
+                        "planned to another IK solution of the goal pose")
+        return event
 
     def stop(self, reason: str) -> Event:
         self.planner.goal_q = None
@@ -370,6 +415,10 @@ class ReactivePlanner:
                     spent = time.perf_counter() - t0
                     self.stats.retry_failed_ms.append(1e3 * spent)
                     self.retries.failed(t, spent, self._failure, shapes)
+                    if self._unreached_since is None:
+                        self._unreached_since = t
+                    event = self._rechoose_goal(t, q_now, obstacles, perception_age_s,
+                                                qd_now)
             return event
         if self._stalled(t, q_now):
             return self._reroute(q_now, shapes, "the arm stopped short of the goal (the "
@@ -510,6 +559,7 @@ class ReactivePlanner:
         self.stats.replans += 1
         self.stats.replan_latency_ms.append(latency)
         self.stats.replan_resumed.append(self.state == "holding")
+        self._unreached_since = None
         event = self._execute(result, latency)
         event.reason = why
         return event
