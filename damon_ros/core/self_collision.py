@@ -9,7 +9,7 @@ touch only where their boxes overlap, so a state whose boxes of every enabled pa
 SRDF's disabled pairs are not asked, as in the exact query) are separated is free of
 self-collision, and only the others go to the meshes. The separating-axis test of two boxes
 is exact for boxes (15 axes), so the screen never clears a state the meshes refuse; on
-random states it cleared 89-90 % of those the meshes pass. No rclpy here.
+random states it cleared ~90 % of those the meshes pass, at ~3 µs a state. No rclpy here.
 """
 
 from __future__ import annotations
