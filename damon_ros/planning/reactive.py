@@ -313,8 +313,9 @@ class ReactivePlanner:
         way (stress bench, S-v1-1.5-s2709-163: two movers stopped beside the base after the
         arm escaped them, and the arm held 27 s while every search toward the elbow-out
         solution failed, RRTConnect's as well). None (hold on) when the pose has no other
-        solution with clearance; where the new one has no route either, the retries go on
-        toward it, and it is re-chosen again after as long."""
+        solution with clearance, or no route reaches that one either: the retries then go on
+        toward the chosen one (on a stress scene whose mover passed 6 s in, retries toward
+        the other solution never ended), and the other is tried again after as long."""
         limit = self.config.goal_rechoose_s
         if limit <= 0 or not isinstance(self.goal, PoseGoal) or \
                 self._unreached_since is None or t - self._unreached_since < limit:
@@ -327,10 +328,10 @@ class ReactivePlanner:
                                              self.scene(obstacles).now, avoid=old)
         if q_alt is None:
             return None
-        result, latency = self._plan(q_now, q_alt, obstacles, perception_age_s, qd_now)
-        if self.planner.goal_q is None:  # refused after all: the old choice stays
-            self.planner.goal_q = old
-        if not result.success:
+        kept = (old, self.planner.goal_exact)
+        result, _ = self._plan(q_now, q_alt, obstacles, perception_age_s, qd_now)
+        if not result.success:  # the chosen configuration stays the goal
+            self.planner.goal_q, self.planner.goal_exact = kept
             return None
         self.stats.goals_rechosen += 1
         event = self._execute(result, 1e3 * (time.perf_counter() - t0))

@@ -65,3 +65,22 @@ def test_a_joint_goal_or_a_zero_limit_is_never_rechosen(planner, monkeypatch):
         kept = planner.goal_q.copy()
         assert _holding_updates(runtime, 3.0) == (None, None)
         assert np.array_equal(planner.goal_q, kept) and runtime.state == "holding"
+
+
+def test_another_solution_no_route_reaches_leaves_the_chosen_one_the_goal(planner,
+                                                                          monkeypatch):
+    """Where no route reaches the other solution either, the retries go on toward the chosen
+    one (a mover may yet pass): a stress scene held 6 s and then resumed, and retrying
+    toward the other solution it never did."""
+    runtime = _held(planner, monkeypatch, pose_goal(SCENE), RuntimeConfig(goal_rechoose_s=1.0))
+    old, real_plan, tried = planner.goal_q.copy(), planner.plan, []
+
+    def plan(q, goal, *args, **kwargs):
+        tried.append(np.asarray(goal, float))
+        real_plan(q, goal, *args, **kwargs)  # takes the goal on, as a plan does
+        return PlanResult(False, "blocked")
+
+    monkeypatch.setattr(planner, "plan", plan)
+    assert _holding_updates(runtime, 3.5) == (None, None)
+    assert tried and np.max(np.abs(tried[0] - old)) >= 0.3
+    assert np.array_equal(planner.goal_q, old) and runtime.state == "holding"
