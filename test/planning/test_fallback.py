@@ -217,6 +217,7 @@ def test_a_slow_holding_retry_leaves_the_shortening_of_a_sampled_route_to_the_ne
     shortenings.clear()
     assert retry(defer=False).success and len(shortenings) == 1
 
+
 def test_a_failing_search_escalates_and_says_so(planner, monkeypatch):
     budgets = _failing_searches(planner, monkeypatch)
     reasons = [planner.plan(SCENE.start, pose_goal(SCENE), SCENE.obstacles_at(0.0)).reason
