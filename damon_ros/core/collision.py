@@ -257,9 +257,7 @@ class SphereModel:
         self.bulge: np.ndarray | None = None  # per sphere, its proven reach beyond the meshes
         self._pack_cache: list[tuple] = []  # (obstacle tuple, its packed arrays), newest first
         self.kernel_args = sphere_kernels.pack_robot(
-            np.array([model.jointPlacements[j].rotation for j in range(1, 8)]),
-            np.array([model.jointPlacements[j].translation for j in range(1, 8)]),
-            self.joints, self.centers, self.radii)
+            *sphere_kernels.joint_placements(model), self.joints, self.centers, self.radii)
         self._kernel_order = sphere_kernels.kernel_order(self.joints, self.centers)
 
     def packed(self, obstacles: Sequence[Shape]) -> tuple:

@@ -21,7 +21,7 @@ import pinocchio as pin
 from numba import njit
 
 from damon_ros.core.collision import local_vertices
-from damon_ros.core.sphere_kernels import _frames
+from damon_ros.core.sphere_kernels import _frames, joint_placements
 
 
 def _box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -50,11 +50,7 @@ class SelfCollisionScreen:
         self.halves = np.array([b[2] for b in boxes])
         self.pairs = np.array([(p.first, p.second) for p in geom.collisionPairs],
                               np.int64).reshape(-1, 2)
-        n = model.njoints - 1
-        self._jr = np.ascontiguousarray([model.jointPlacements[j].rotation
-                                         for j in range(1, n + 1)], dtype=float)
-        self._jp = np.ascontiguousarray([model.jointPlacements[j].translation
-                                         for j in range(1, n + 1)], dtype=float)
+        self._jr, self._jp = joint_placements(model)
 
     def clear(self, Q: np.ndarray) -> np.ndarray:
         """(N,) True where configuration Q[i] (N, 7) is certainly free of self-collision;

@@ -145,6 +145,14 @@ def pack_robot(rotations: np.ndarray, translations: np.ndarray, joints: np.ndarr
             np.ascontiguousarray(gc), np.ascontiguousarray(gr), jb)
 
 
+def joint_placements(model) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (7, 3, 3) and translations (7, 3) of a pinocchio model's joints in their
+    parents: the ``jr``, ``jp`` that `_frames` (and `pack_robot`) take."""
+    joints = range(1, model.njoints)
+    return (np.ascontiguousarray([model.jointPlacements[j].rotation for j in joints], float),
+            np.ascontiguousarray([model.jointPlacements[j].translation for j in joints], float))
+
+
 @njit(cache=True)
 def _frames(q, jr, jp, fr, fp):
     """Rotations/positions of every joint frame (explicit loops: numba's small matrix
