@@ -600,15 +600,13 @@ class GraphPlanner:
     def _route_around_movers(self, q_start, qd_start, q_goal, scene: Scene) -> PlanResult:
         """`_route_in_time` for a scene with movers; a search around a predicted region
         takes over what the search before it decided (`self._reuse`)."""
-        started = time.perf_counter()
         result = self._route_moving(q_start, qd_start, q_goal, scene)
         t0 = time.perf_counter()
         margin = self._mover_margin(q_start, scene)
         at_rest = qd_start is None or float(np.max(np.abs(qd_start))) < MOVING_RAD_S
 
         def late() -> bool:  # a holding retry that spent RETRY_AROUND_S leaves the rest
-            return at_rest and self._may_defer() and \
-                time.perf_counter() - started > RETRY_AROUND_S
+            return at_rest and self._may_defer() and self._retry_spent() > RETRY_AROUND_S
 
         for attempt in range(self.config.space_time_reroutes + 1):
             if not result.success or result.trajectory is None:
@@ -1133,6 +1131,11 @@ class GraphPlanner:
         search then passes."""
         return self._defer and self._deferrals < RETRY_DEFERRALS and not self._moving_start
 
+    def _retry_spent(self) -> float:
+        """Seconds since this `replan` began: what the deferral rules (RETRY_AROUND_S,
+        RETRY_SHORTEN_S) weigh."""
+        return time.perf_counter() - self._retry_started
+
     def _fallback(self, query: _Query) -> tuple[np.ndarray | None, str, str]:
         """A stored route (`_from_experience`), else RRT-Connect under the same checker,
         where the graph has no route. Stored routes come after the graph, not before it:
@@ -1159,8 +1162,7 @@ class GraphPlanner:
         budget = self._fallback_budget(attempt if self._escalate and not self._moving_start
                                        else 0)
         raw = self._sampling_route(query, budget, seed=attempt)
-        if raw is not None and self._may_defer() and \
-                time.perf_counter() - self._retry_started > RETRY_SHORTEN_S:
+        if raw is not None and self._may_defer() and self._retry_spent() > RETRY_SHORTEN_S:
             self._pending, self._deferred = raw, True
             return None, "", "; RRT-Connect found a route, shortened by the next retry"
         path = None if raw is None else self._shortened(raw, query)
