@@ -324,8 +324,8 @@ class ReactivePlanner:
         self._unreached_since = t
         t0 = time.perf_counter()
         old = self.planner.goal_q
-        q_alt, _ = self.planner.resolve_goal(self.goal, q_now,
-                                             self.scene(obstacles).now, avoid=old)
+        q_alt, _ = self.planner.resolve_goal(self.goal, q_now, tuple(s for s, _ in obstacles),
+                                             avoid=old)
         if q_alt is None:
             return None
         kept = (old, self.planner.goal_exact)
