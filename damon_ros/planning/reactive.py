@@ -23,7 +23,13 @@ import numpy as np
 
 from damon_ros.core.hull import few_vertices
 from damon_ros.core.shapes import Shape, grown
-from damon_ros.planning.graph_planner import GraphPlanner, PlanResult, PoseGoal, Scene
+from damon_ros.planning.graph_planner import (
+    REST_HORIZON_S,
+    GraphPlanner,
+    PlanResult,
+    PoseGoal,
+    Scene,
+)
 from damon_ros.planning.space_time import movers
 
 TRACKING_RAD = 0.05
@@ -447,8 +453,8 @@ class ReactivePlanner:
         if timed is None:
             threatened, why = self.planner.path_threatened(q_now, remaining, shapes)
         else:
-            threatened, why = self.planner.trajectory_threatened(q_now, remaining, *timed,
-                                                                 shapes)
+            threatened, why = self.planner.trajectory_threatened(
+                q_now, remaining, *self._then_resting(*timed), shapes)
         if not threatened:
             return None
         # following on may keep more nominal clearance from the movers than braking here:
@@ -485,6 +491,19 @@ class ReactivePlanner:
         if times[-1] <= 0.0:
             times[-1] = 1e-3
         return times, np.vstack([q_now[None], tr.positions[rest]])
+
+    def _then_resting(self, times: np.ndarray,
+                      positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rest of an escape move, then REST_HORIZON_S at rest at its end (any other
+        trajectory as it is): an escape ends in a hold, certified at planning with that
+        rest, and a mover that starts toward where it ends is a threat to it now, not once
+        the arm holds there. S-v1-1.5-s2710-118: a ball set off toward the end of a last
+        resort 0.13 s before it ended; the holding arm found it 0.08 s from contact, too
+        late for any escape, and was touched."""
+        if self.trajectory_source not in ("escape", "last resort"):
+            return times, positions
+        return (np.append(times, times[-1] + REST_HORIZON_S),
+                np.vstack([positions, positions[-1:]]))
 
     def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene,
                               qd_now: np.ndarray | None = None) -> Event | None:

@@ -556,3 +556,55 @@ def test_a_trajectory_from_a_moving_arm_is_rechecked_on_the_schedule_it_was_stam
         k = int(np.searchsorted(trajectory.times, due))  # the sample due next
         assert np.allclose(states[1], trajectory.positions[k + 1])
         assert times[1] == pytest.approx(trajectory.times[k + 1] - trajectory.times[k])
+
+
+def test_a_mover_heading_for_where_an_escape_ends_is_a_threat_to_the_escape(planner, fast):
+    """An escape ends in a hold, certified at planning with REST_HORIZON_S at rest at its
+    end. A ball that sets off toward that end while the escape runs, and gets there only
+    after it, is a threat now: the re-check of the running escape takes the rest at its end
+    too, instead of leaving the ball to the hold (found 0.08 s before contact on the stress
+    bench, too late for any escape)."""
+    q = READY.copy()
+    hand, _ = fast.tcp_pose(q)
+    v = np.array([0.0, -0.8, 0.0])
+    ball = Shape("sphere", (0.05,), hand - v / 0.8 * 0.45, name="ball")
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    runtime.state = "holding"
+    planner.goal_q = None  # nothing to resume toward: only the escape can move it
+    event = runtime.update(0.0, q, [(ball, v)], qd_now=np.zeros(7))
+    assert event is not None and event.kind == "trajectory" and "escaping" in event.reason
+    tr = event.result.trajectory
+    runtime._t_start = 0.0  # as if decided at once: the check, not this machine's latency
+    t = 0.005
+    at, qd = tr.sample(t)[:2]
+    end, _ = fast.tcp_pose(tr.positions[-1])
+    up = np.array([0.0, 0.0, 1.0])  # a second ball falls onto where the hand will rest
+    other = Shape("sphere", (0.04,), end + up * (tr.duration + 0.4 - t), name="other")
+    obstacles = [(ball.moved_to(ball.position + v * t), v), (other, -up)]
+    timed = runtime._remaining(t, at)
+    remaining = np.vstack([at[None], runtime.path[runtime.segment + 1:]])
+    assert not planner.trajectory_threatened(at, remaining, *timed,
+                                             runtime.scene(obstacles, 0.0))[0]
+    event = runtime.update(t, at, obstacles, qd_now=qd)
+    assert event is not None and "other is predicted" in event.reason, event
+
+
+def test_an_arm_inside_a_fast_movers_sweep_still_finds_an_escape(planner, fast):
+    """A ball 0.3 m from the hand comes at it at 1-1.3 m/s: its region swept over the
+    prediction horizon covers every escape candidate within reach. Ranked by that sweep,
+    none was tried (the stress bench: a holding arm found no escape, last resort included,
+    in ten tries, and was hit); ranked by where the ball is predicted, one is found, and
+    it keeps clear of the ball's true motion."""
+    q = READY.copy()
+    hand, _ = fast.tcp_pose(q)
+    runtime = ReactivePlanner(planner, RuntimeConfig())
+    for speed in (1.0, 1.3):
+        v = np.array([speed, 0.0, 0.0])
+        ball = Shape("sphere", (0.04,), hand - np.array([0.3, 0.0, 0.0]), name="ball")
+        scene = runtime.scene([(ball, v)], AGE)
+        pool, _, _ = planner._escape_pool(q, scene, 96, np.random.default_rng(0))
+        assert float(np.max(fast.distances(pool, scene.ahead))) < planner.config.margin + 0.01
+        planner.goal_q = None
+        result = planner.escape(q, scene)
+        assert result.success, result.reason
+        assert _keeps_clear(fast, result.trajectory, ball, v)
