@@ -1607,8 +1607,7 @@ class GraphPlanner:
         prediction reaches where no move is certified against the grown regions (the arm
         is already within them), and the re-check of that escape while it runs."""
         scene = Scene.of(obstacles)
-        times = np.append(np.asarray(times, float), float(times[-1]) + REST_HORIZON_S)
-        positions = np.vstack([positions, positions[-1:]])
+        times, positions = then_resting(times, positions)
         nominal = replace(self.config.prediction, position_sigma_m=0.0,
                           velocity_sigma_m_s=0.0, velocity_sigma_rel=0.0,
                           acceleration_m_s2=0.0)
@@ -1722,6 +1721,13 @@ def _stop_indices(times, positions, velocities, at_rest, every_s, every_rad):
 
 def _timed(trajectory) -> tuple[np.ndarray, np.ndarray]:
     return trajectory.times, trajectory.positions
+
+
+def then_resting(times, positions) -> tuple[np.ndarray, np.ndarray]:
+    """Timed states (``times`` from now), then REST_HORIZON_S at rest at the last: a move
+    and the hold it ends in, as an escape is certified and re-checked."""
+    return (np.append(np.asarray(times, float), float(times[-1]) + REST_HORIZON_S),
+            np.vstack([positions, positions[-1:]]))
 
 
 def _clearest(clear: np.ndarray, floor: float, count: int = 24) -> list[int]:

@@ -24,11 +24,11 @@ import numpy as np
 from damon_ros.core.hull import few_vertices
 from damon_ros.core.shapes import Shape, grown
 from damon_ros.planning.graph_planner import (
-    REST_HORIZON_S,
     GraphPlanner,
     PlanResult,
     PoseGoal,
     Scene,
+    then_resting,
 )
 from damon_ros.planning.space_time import movers
 
@@ -502,8 +502,7 @@ class ReactivePlanner:
         late for any escape, and was touched."""
         if self.trajectory_source not in ("escape", "last resort"):
             return times, positions
-        return (np.append(times, times[-1] + REST_HORIZON_S),
-                np.vstack([positions, positions[-1:]]))
+        return then_resting(times, positions)
 
     def _escape_if_threatened(self, q_now: np.ndarray, shapes: Scene,
                               qd_now: np.ndarray | None = None) -> Event | None:
